@@ -1,0 +1,172 @@
+"""Shard I/O: one Parquet table (+ an optional npz of dense arrays) per shard, written atomically.
+
+A stage folder holds ``part-NNNNN.parquet`` and, for dense arrays, ``part-NNNNN.npz`` whose first axis follows
+the Parquet row order. Both files are written under temporary names and renamed; the Parquet file is renamed
+last, so its presence marks a complete shard and a crash never leaves a half-written shard that looks complete.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+STATUS_OK = "ok"
+_SHARD_RE = re.compile(r"^part-(\d{5})\.parquet$")
+
+
+def shard_name(index: int) -> str:
+    """``part-NNNNN`` for a non-negative shard index."""
+    if index < 0:
+        raise ValueError(f"shard index must be >= 0, got {index}")
+    return f"part-{index:05d}"
+
+
+@dataclass(frozen=True)
+class ShardPaths:
+    """Where a shard lives. ``npz`` may not exist for shards without dense arrays."""
+
+    parquet: Path
+    npz: Path
+
+    @property
+    def complete(self) -> bool:
+        return self.parquet.is_file()
+
+
+def shard_paths(folder: str | os.PathLike, index: int) -> ShardPaths:
+    folder = Path(folder)
+    name = shard_name(index)
+    return ShardPaths(folder / f"{name}.parquet", folder / f"{name}.npz")
+
+
+def _atomic_write(path: Path, write_fn) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write_fn(tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _rows_to_table(rows: Sequence[Mapping[str, Any]] | pa.Table) -> pa.Table:
+    if isinstance(rows, pa.Table):
+        table = rows
+    else:
+        rows = list(rows)
+        if rows:
+            keys = list(rows[0].keys())
+            for i, r in enumerate(rows):
+                if list(r.keys()) != keys:
+                    raise ValueError(f"row {i} has keys {sorted(r.keys())}, expected {sorted(keys)}")
+            cols = {k: [_to_py(r[k]) for r in rows] for k in keys}
+            table = pa.table(cols)
+        else:
+            table = pa.table({"sample_id": pa.array([], pa.string()), "status": pa.array([], pa.string()),
+                              "reason": pa.array([], pa.string())})
+    for required in ("sample_id", "status", "reason"):
+        if required not in table.column_names:
+            raise ValueError(f"shard rows must have a '{required}' column; got columns {table.column_names}")
+    return table
+
+
+def _to_py(v: Any) -> Any:
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+def write_shard(folder: str | os.PathLike, index: int, rows: Sequence[Mapping[str, Any]] | pa.Table,
+                arrays: Mapping[str, np.ndarray] | None = None) -> ShardPaths:
+    """Write shard ``index`` of ``folder`` atomically.
+
+    Args:
+        rows: one mapping per sample (or a ``pyarrow.Table``) with at least ``sample_id``, ``status``, ``reason``.
+        arrays: dense arrays whose first axis has one entry per row, saved to ``part-NNNNN.npz`` (uncompressed).
+    """
+    table = _rows_to_table(rows)
+    paths = shard_paths(folder, index)
+    if arrays:
+        for k, a in arrays.items():
+            a = np.asarray(a)
+            if a.dtype == object:
+                raise TypeError(f"array '{k}' has dtype object; shards store numeric/bool/str arrays only")
+            if a.ndim == 0 or a.shape[0] != table.num_rows:
+                raise ValueError(f"array '{k}' has shape {a.shape}; its first axis must equal the "
+                                 f"{table.num_rows} rows of the shard")
+        _atomic_write(paths.npz, lambda tmp: _save_npz(tmp, arrays))
+    _atomic_write(paths.parquet, lambda tmp: pq.write_table(table, tmp))
+    return paths
+
+
+def _save_npz(tmp: str, arrays: Mapping[str, np.ndarray]) -> None:
+    with open(tmp, "wb") as f:
+        np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
+
+
+def read_shard(folder: str | os.PathLike, index: int, with_arrays: bool = True
+               ) -> tuple[pa.Table, dict[str, np.ndarray]]:
+    """Read a complete shard; raise ``FileNotFoundError`` naming the path if it is missing."""
+    paths = shard_paths(folder, index)
+    if not paths.complete:
+        raise FileNotFoundError(f"shard {paths.parquet} does not exist or is incomplete")
+    table = pq.read_table(paths.parquet)
+    arrays: dict[str, np.ndarray] = {}
+    if with_arrays and paths.npz.is_file():
+        with np.load(paths.npz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    return table, arrays
+
+
+def list_shards(folder: str | os.PathLike) -> list[int]:
+    """Indices of the complete shards in ``folder``, sorted."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    out = []
+    for p in folder.iterdir():
+        m = _SHARD_RE.match(p.name)
+        if m:
+            out.append(int(m.group(1)))
+    return sorted(out)
+
+
+def read_table(folder: str | os.PathLike) -> pa.Table:
+    """Concatenate the Parquet rows of every complete shard in ``folder`` (empty table if none)."""
+    tables = [pq.read_table(shard_paths(folder, i).parquet) for i in list_shards(folder)]
+    if not tables:
+        return _rows_to_table([])
+    return pa.concat_tables(tables, promote_options="default")
+
+
+def content_hash(paths: Iterable[str | os.PathLike], extra: bytes | str = b"") -> str:
+    """SHA-256 (hex, 16 chars) over the bytes of the given files, in order, plus ``extra``."""
+    h = hashlib.sha256()
+    for p in paths:
+        p = Path(p)
+        h.update(p.name.encode())
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    h.update(extra.encode() if isinstance(extra, str) else extra)
+    return h.hexdigest()[:16]
+
+
+def ok_mask(table: pa.Table) -> np.ndarray:
+    """Boolean mask of rows whose status is ``"ok"``."""
+    return np.asarray(table.column("status").to_pylist(), dtype=object) == STATUS_OK
