@@ -104,16 +104,17 @@ def topological_order(parents: np.ndarray, joint_names: list[str] | tuple[str, .
             raise RigError("the joint hierarchy has a cycle: no joint is a root (parent -1)")
         raise RigError(f"the joint hierarchy must have exactly one root, found {len(roots)}: "
                        f"{[names[r] for r in roots]}")
-    children: list[list[int]] = [[] for _ in range(n)]
-    for i, p in enumerate(parents):
-        if p >= 0:
-            children[p].append(i)
+    # stable topological order: keeps the given order wherever it is already valid
+    placed = np.zeros(n, dtype=bool)
     order: list[int] = []
-    stack = [roots[0]]
-    while stack:
-        j = stack.pop()
-        order.append(j)
-        stack.extend(reversed(children[j]))
+    progress = True
+    while progress and len(order) < n:
+        progress = False
+        for i in range(n):
+            if not placed[i] and (parents[i] == -1 or placed[parents[i]]):
+                placed[i] = True
+                order.append(i)
+                progress = True
     if len(order) != n:
         missing = sorted(set(range(n)) - set(order))
         raise RigError(f"the joint hierarchy has a cycle: joints {[names[m] for m in missing][:5]} are not "
@@ -167,8 +168,8 @@ class Rig:
         parents = np.asarray(self.parents, dtype=np.int64)
         if parents.shape != (j,):
             raise RigError(f"parents must have shape ({j},), got {parents.shape}")
-        order = topological_order(parents, names)
-        if not np.array_equal(order, np.arange(j)) and not all(parents[k] < k for k in range(j)):
+        topological_order(parents, names)  # cycles / several roots
+        if not all(parents[k] < k for k in range(j)):
             raise RigError("joints must be in topological order (parents[j] < j); use Rig.from_unordered")
         g = np.asarray(self.rest_transforms, dtype=np.float64)
         if g.shape != (j, 4, 4) or not np.isfinite(g).all():
