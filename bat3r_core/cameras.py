@@ -13,8 +13,9 @@ Conventions (written once, here):
 * Blender's camera looks down its local ``-z`` with ``y`` up and ``x`` right, i.e. its local axes are the OpenCV
   axes flipped by ``diag(1, -1, -1)``. :func:`to_blender` turns a :class:`PinholeCamera` into the numbers a
   Blender camera object needs (lens, sensor width, shifts and ``matrix_world``); the render worker only copies
-  them. Blender's shifts are measured in units of the larger image side:
-  ``shift_x = (W / 2 - cx) / max(W, H)``, ``shift_y = (cy - H / 2) / max(W, H)``.
+  them. With ``sensor_fit = 'HORIZONTAL'`` Blender measures its shifts in units of the image *width*:
+  ``shift_x = (W / 2 - cx) / W``, ``shift_y = (cy - H / 2) / W`` (checked in bpy 5.0 on landscape and portrait
+  images; dividing by ``max(W, H)`` instead is wrong for portrait images under this fit).
 """
 from __future__ import annotations
 
@@ -340,7 +341,7 @@ def to_blender(camera: PinholeCamera, world_rotation: np.ndarray | None = None,
         raise ValueError(f"world_rotation must have shape (3, 3), got {Rw.shape}")
     _check_rotation("world_rotation", Rw)
     W, H = camera.width, camera.height
-    side = float(max(W, H))
+    side = float(W)  # horizontal sensor fit: shifts are fractions of the width
     M = np.eye(4)
     M[:3, :3] = Rw @ camera.R.T @ BLENDER_FROM_OPENCV
     M[:3, 3] = Rw @ camera.center
