@@ -198,8 +198,11 @@ def _load_gltf(path: Path) -> Rig:
         uv = np.concatenate(uvs)
         uv[:, 1] = 1.0 - uv[:, 1]  # glTF's UV origin is top-left; bat3r stores OpenGL-style (origin bottom-left)
     name = Path(path).stem
-    return Rig.from_unordered(name, np.concatenate(verts), np.concatenate(faces), names, np.asarray(parents),
-                              rest, np.concatenate(weights), uvs=uv)
+    try:
+        return Rig.from_unordered(name, np.concatenate(verts), np.concatenate(faces), names, np.asarray(parents),
+                                  rest, np.concatenate(weights), uvs=uv)
+    except RigError as e:
+        raise RigError(f"{path}: {e}") from None
 
 
 def _convert_with_blender(path: Path) -> Path:

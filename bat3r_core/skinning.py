@@ -130,21 +130,21 @@ class RigTensors:
                     skin_weights: np.ndarray, dtype: torch.dtype = torch.float32,
                     device: str | torch.device = "cpu") -> "RigTensors":
         """Build from numpy arrays (validated by :class:`bat3r_core.rig.Rig`)."""
-        g = torch.as_tensor(np.asarray(rest_transforms, dtype=np.float64))
+        g = torch.tensor(np.asarray(rest_transforms, dtype=np.float64))
         g_inv = torch.linalg.inv(g)
-        parents_t = torch.as_tensor(np.asarray(parents, dtype=np.int64))
+        parents_t = torch.tensor(np.asarray(parents, dtype=np.int64))
         local = g.clone()
         has_parent = parents_t >= 0
         local[has_parent] = g_inv[parents_t[has_parent]] @ g[has_parent]
         # the (V, J) dense weight matrix; float64 inverse kept exact before the cast
         to = dict(dtype=dtype, device=device)
         return RigTensors(
-            rest_vertices=torch.as_tensor(np.asarray(rest_vertices, dtype=np.float64)).to(**to),
+            rest_vertices=torch.tensor(np.asarray(rest_vertices, dtype=np.float64)).to(**to),
             parents=parents_t.to(device),
             rest_transforms=g.to(**to),
             inverse_rest_transforms=g_inv.to(**to),
             local_rest_transforms=local.to(**to),
-            skin_weights=torch.as_tensor(np.asarray(skin_weights, dtype=np.float64)).to(**to),
+            skin_weights=torch.tensor(np.asarray(skin_weights, dtype=np.float64)).to(**to),
         )
 
     def to(self, dtype: torch.dtype | None = None, device: str | torch.device | None = None) -> "RigTensors":

@@ -1,0 +1,138 @@
+import numpy as np
+import pygltflib
+import pytest
+
+from bat3r_core.rig import Rig, RigError, find_left_right_pairs
+from bat3r_core.rig_io import load_rig, save_rig_glb
+from bat3r_core.toy import toy_coat_texture
+
+
+@pytest.fixture(scope="module")
+def toy_glb(toy_rig, tmp_path_factory):
+    path = tmp_path_factory.mktemp("glb") / "toy.glb"
+    save_rig_glb(toy_rig, path, texture=toy_coat_texture("bay", 64))
+    return path
+
+
+def test_glb_round_trip_is_exact(toy_rig, toy_glb):
+    back = load_rig(toy_glb)
+    np.testing.assert_allclose(back.rest_vertices, toy_rig.rest_vertices, atol=1e-6)  # float32 storage
+    np.testing.assert_array_equal(back.faces, toy_rig.faces)
+    np.testing.assert_allclose(back.skin_weights, toy_rig.skin_weights, atol=1e-6)
+    assert back.joint_names == toy_rig.joint_names
+    np.testing.assert_array_equal(back.parents, toy_rig.parents)
+    np.testing.assert_allclose(back.rest_transforms, toy_rig.rest_transforms, atol=1e-6)
+    np.testing.assert_allclose(back.uvs, toy_rig.uvs, atol=1e-6)
+    assert back.left_right_pairs == toy_rig.left_right_pairs
+
+
+def _mutate(src, dst, fn):
+    gltf = pygltflib.GLTF2().load(str(src))
+    blob = bytearray(gltf.binary_blob())
+    fn(gltf, blob)
+    gltf.set_binary_blob(bytes(blob))
+    gltf.save_binary(str(dst))
+    return dst
+
+
+def _accessor_view(gltf, blob, acc_index, dtype, ncomp):
+    acc = gltf.accessors[acc_index]
+    view = gltf.bufferViews[acc.bufferView]
+    start = (view.byteOffset or 0) + (acc.byteOffset or 0)
+    return np.frombuffer(memoryview(blob)[start:start + acc.count * ncomp * np.dtype(dtype).itemsize],
+                         dtype=dtype).reshape(acc.count, ncomp)
+
+
+def _no_skin(gltf, blob):
+    gltf.skins = []
+    for n in gltf.nodes:
+        n.skin = None
+
+
+def _bad_weights(gltf, blob):
+    attrs = gltf.meshes[0].primitives[0].attributes
+    w = _accessor_view(gltf, blob, attrs.WEIGHTS_0, np.float32, 4)
+    w[10] *= 0.5  # vertex 10's weights sum to 0.5
+
+
+def _nan_vertex(gltf, blob):
+    attrs = gltf.meshes[0].primitives[0].attributes
+    _accessor_view(gltf, blob, attrs.POSITION, np.float32, 3)[3, 1] = np.nan
+
+
+def _lines(gltf, blob):
+    gltf.meshes[0].primitives[0].mode = 1
+
+
+def _cycle(gltf, blob):
+    skin = gltf.skins[0]
+    root = skin.joints[0]
+    arm = [n for n in gltf.nodes if n.children and root in n.children and n.mesh is None
+           and gltf.nodes.index(n) not in skin.joints][0]
+    arm.children.remove(root)
+    leaf = [j for j in skin.joints if not gltf.nodes[j].children][0]
+    gltf.nodes[leaf].children = [root]
+
+
+def _two_roots(gltf, blob):
+    skin = gltf.skins[0]
+    root = gltf.nodes[skin.joints[0]]
+    moved = root.children.pop()  # detach one child subtree from the root joint
+    arm = [n for n in gltf.nodes if n.children and skin.joints[0] in n.children][0]
+    arm.children.append(moved)
+
+
+@pytest.mark.parametrize("mutation, message", [
+    (_no_skin, "has no skin"),
+    (_bad_weights, r"skin weights of vertex 10 sum to 0\.5"),
+    (_nan_vertex, "NaN/inf vertex positions"),
+    (_lines, "primitive mode LINES, which cannot be triangulated"),
+    (_cycle, "cycle"),
+    (_two_roots, "exactly one root, found 2"),
+])
+def test_malformed_assets_are_rejected_with_a_clear_message(toy_glb, tmp_path, mutation, message):
+    bad = _mutate(toy_glb, tmp_path / "bad.glb", mutation)
+    with pytest.raises(RigError, match=message) as err:
+        load_rig(bad)
+    assert "bad.glb" in str(err.value)
+
+
+def test_missing_and_unsupported_files(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.glb does not exist"):
+        load_rig(tmp_path / "nope.glb")
+    p = tmp_path / "mesh.obj"
+    p.write_text("v 0 0 0\n")
+    with pytest.raises(RigError, match="unsupported rig format '.obj'"):
+        load_rig(p)
+    g = tmp_path / "garbage.glb"
+    g.write_bytes(b"not a gltf at all")
+    with pytest.raises(RigError, match="not a readable glTF/GLB"):
+        load_rig(g)
+
+
+def test_rig_validation_messages():
+    rest = np.tile(np.eye(4), (2, 1, 1))
+    v = np.zeros((3, 3))
+    f = np.array([[0, 1, 2]])
+    w = np.array([[1, 0], [0, 1], [0.5, 0.5]])
+    Rig("ok", v, f, ("a", "b"), np.array([-1, 0]), rest, w)
+    with pytest.raises(RigError, match="faces must be triangles"):
+        Rig("x", v, np.array([[0, 1, 2, 0]]), ("a", "b"), np.array([-1, 0]), rest, w)
+    with pytest.raises(RigError, match="exactly one root"):
+        Rig("x", v, f, ("a", "b"), np.array([-1, -1]), rest, w)
+    with pytest.raises(RigError, match="cycle"):
+        Rig("x", v, f, ("a", "b"), np.array([1, 0]), rest, w)
+    with pytest.raises(RigError, match="NaN/inf"):
+        Rig("x", np.full((3, 3), np.nan), f, ("a", "b"), np.array([-1, 0]), rest, w)
+    # reordering joints given children-first
+    r = Rig.from_unordered("x", v, f, ["b", "a"], np.array([1, -1]), rest[[1, 0]], w[:, [1, 0]])
+    assert r.joint_names == ("a", "b") and list(r.parents) == [-1, 0]
+    np.testing.assert_array_equal(r.skin_weights, w)
+
+
+def test_left_right_pairs_by_name_and_by_mirroring():
+    names = ["root", "arm.L", "arm.R", "left_ear", "right_ear", "hipA", "hipB"]
+    pos = np.array([[0, 0, 0], [0.3, 1, 0], [-0.3, 1, 0], [0.1, 2, 0], [-0.1, 2, 0], [0.4, 0, 0], [-0.4, 0, 0.01]])
+    pairs = find_left_right_pairs(names, pos)
+    assert (1, 2) in pairs and (5, 6) in pairs  # by name and by mirroring
+    assert len(pairs) == 3
