@@ -1,0 +1,75 @@
+"""The ``bat3r`` command line: the pieces of the pipeline a user runs by hand.
+
+Every subcommand is a thin wrapper over a bat3r_core function; run ``bat3r <command> --help`` for its options.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _cmd_catalog_validate(args: argparse.Namespace) -> int:
+    from .catalog import ConfigError, load_catalog
+
+    try:
+        catalog = load_catalog(args.path)
+    except (ConfigError, FileNotFoundError) as e:
+        print(f"invalid catalog: {e}", file=sys.stderr)
+        return 2
+    print(f"catalog {catalog.path}: storage {catalog.storage()}, image size {catalog.image_size}, "
+          f"K = {catalog.layers}, shard size {catalog.shard_size}, run presets {sorted(catalog.runs)}")
+    usable = 0
+    for name, cat in catalog.categories.items():
+        missing = cat.missing()
+        status = "ready" if not missing else f"missing {len(missing)}"
+        kind = "generated on first use" if cat.is_generated else cat.asset
+        print(f"  {name:<8} {status:<10} asset: {kind}; collection: {cat.collection.kind} "
+              f"{cat.collection.path}; fitting: {cat.fitting.preset}")
+        for m in missing:
+            print(f"           - needs {m}")
+        usable += not missing
+    print(f"{usable}/{len(catalog.categories)} categories ready")
+    return 0
+
+
+def _cmd_asset_toy(args: argparse.Namespace) -> int:
+    from .rig_io import load_rig, save_rig_glb
+    from .toy import build_toy_rig, toy_coat_texture
+
+    rig = build_toy_rig()
+    out = save_rig_glb(rig, args.out, texture=toy_coat_texture(args.coat))
+    back = load_rig(out)
+    print(f"wrote {out} ({out.stat().st_size / 1e3:.0f} kB)")
+    print(back.summary())
+    print("joints: " + ", ".join(back.joint_names))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="bat3r", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    cat = sub.add_parser("catalog", help="data catalog commands")
+    cat_sub = cat.add_subparsers(dest="catalog_command", required=True)
+    val = cat_sub.add_parser("validate", help="print the categories and what each is missing")
+    val.add_argument("path", nargs="?", default=None, help="catalog file (default: ./data_catalog.yaml)")
+    val.set_defaults(func=_cmd_catalog_validate)
+
+    asset = sub.add_parser("asset", help="generate assets")
+    asset_sub = asset.add_subparsers(dest="asset_command", required=True)
+    toy = asset_sub.add_parser("toy", help="write the embedded toy quadruped as a rigged GLB")
+    toy.add_argument("--out", type=Path, required=True, help="output .glb path")
+    toy.add_argument("--coat", default="bay", help="procedural coat texture (bay, chestnut, grey, pinto)")
+    toy.set_defaults(func=_cmd_asset_toy)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,98 @@
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from bat3r_core.catalog import ConfigError, load_catalog
+from bat3r_core.cli import main
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture()
+def catalog_copy(tmp_path):
+    dst = tmp_path / "data_catalog.yaml"
+    shutil.copy(ROOT / "data_catalog.yaml", dst)
+    return dst
+
+
+def _edit(path, fn):
+    data = yaml.safe_load(path.read_text())
+    fn(data)
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_the_shipped_catalog_loads_with_typed_stage_configs(catalog_copy):
+    cat = load_catalog(catalog_copy)
+    assert {"toy", "horse", "cow", "sheep"} <= set(cat.categories)
+    assert {"tiny", "demo", "paper"} <= set(cat.runs)
+    toy = cat.category("toy")
+    assert toy.body_frame.origin == "spine.2" and toy.body_frame.horizontal == ("thigh.L", "thigh.R")
+    assert toy.missing() == []
+    # paths resolve relative to the catalog file, not the working directory
+    assert cat.category("horse").resolve("assets/horse/horse.glb") == catalog_copy.parent / "assets/horse/horse.glb"
+    assert cat.fitting_config("horse").weight_edge == 3000.0  # real preset
+    assert cat.fitting_config("toy").weight_edge == 100.0  # synthetic preset
+    assert cat.fitting_config("toy", run="tiny").steps == cat.runs["tiny"].fitting["steps"]
+    assert cat.model_config("paper").resolution == 160 and cat.model_config("paper").layers == 4
+    assert cat.camera_prior_config().distribution == "student_t"
+    assert cat.train_config("paper").weight_decay == 0.01
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d.update(colour="red"), r"unknown top-level key\(s\) \['colour'\]"),
+    (lambda d: d["categories"]["toy"].update(pose="x"), r"categories\.toy: unknown key\(s\) \['pose'\]"),
+    (lambda d: d["categories"]["horse"]["body_frame"].pop("origin"),
+     r"categories\.horse\.body_frame\.origin: required key is missing"),
+    (lambda d: d["categories"]["horse"]["body_frame"].update(forward="spine"),
+     r"categories\.horse\.body_frame\.forward: expected a list"),
+    (lambda d: d["runs"]["tiny"].update(iterations="two"), r"runs\.tiny\.iterations: expected an integer"),
+    (lambda d: d.update(shard_size=1.5), r"shard_size: expected an integer"),
+    (lambda d: d["runs"]["demo"]["train"].update(stepz=3), r"runs\.demo\.train: unknown key\(s\) \['stepz'\]"),
+    (lambda d: d["fitting_presets"]["real"].update(weight_edge="big"),
+     r"fitting_presets\.real\.weight_edge: expected a number"),
+    (lambda d: d["categories"]["cow"]["collection"].update(kind="zip"),
+     r"categories\.cow\.collection\.kind: expected one of \['folder', 'parquet', 'generated'\]"),
+    (lambda d: d.pop("runs"), r"runs: required key is missing"),
+    (lambda d: d["camera_prior"].update(distribution="cauchy"), r"camera_prior\.distribution"),
+])
+def test_bad_catalogs_name_the_key(catalog_copy, edit, message):
+    _edit(catalog_copy, edit)
+    with pytest.raises(ConfigError, match=message):
+        load_catalog(catalog_copy)
+
+
+def test_missing_asset_reported_on_use(catalog_copy):
+    cat = load_catalog(catalog_copy)
+    with pytest.raises(FileNotFoundError, match=r"category 'horse': rigged asset .*assets/horse/horse.glb does not "
+                                                r"exist\. Provide a rigged, skinned canonical mesh"):
+        cat.category("horse").require_asset()
+    assert any("horse.glb" in m for m in cat.category("horse").missing())
+
+
+def test_toy_asset_generated_on_first_use(catalog_copy, tmp_path, monkeypatch):
+    monkeypatch.setenv("BAT3R_STORAGE_ROOT", str(tmp_path / "store"))
+    cat = load_catalog(catalog_copy)
+    path = cat.asset_path("toy")
+    assert path.is_file() and path.parent == tmp_path / "store" / "_assets"
+    rig = cat.load_rig("toy")
+    assert rig.num_joints == 27 and rig.joint_index("spine.2") >= 0
+
+
+def test_cli_catalog_validate(catalog_copy, capsys):
+    assert main(["catalog", "validate", str(catalog_copy)]) == 0
+    out = capsys.readouterr().out
+    assert "toy      ready" in out
+    assert "horse" in out and "needs rigged asset" in out and "1/4 categories ready" in out
+    _edit(catalog_copy, lambda d: d.update(layers="four"))
+    assert main(["catalog", "validate", str(catalog_copy)]) == 2
+    assert "layers: expected an integer" in capsys.readouterr().err
+
+
+def test_cli_asset_toy(tmp_path, capsys):
+    out = tmp_path / "toy.glb"
+    assert main(["asset", "toy", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert out.is_file() and "27 joints" in text
