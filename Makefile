@@ -1,0 +1,50 @@
+# bat3r: `make demo` and `make test` work from a fresh clone (they install what they need into .venv).
+PYTHON ?= python3.11
+VENV := .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+STAMP := $(VENV)/.bat3r-installed
+TORCH_VERSION := 2.13.0
+PYTEST_ARGS ?=
+
+.PHONY: install test demo bench server server-stop clean browser-deps
+
+$(PY):
+	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "bat3r needs Python 3.11 ($(PYTHON) not found; set PYTHON=...)"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(PIP) install --quiet --upgrade pip
+
+# CPU-only machines take the CPU build of torch first (an unpinned torch would pull multi-GB CUDA wheels);
+# machines with an NVIDIA driver let pip resolve torch's default (CUDA) build through the project requirement.
+$(STAMP): pyproject.toml | $(PY)
+	@if command -v nvidia-smi >/dev/null 2>&1; then \
+		echo "NVIDIA GPU found: installing the default torch build"; \
+	else \
+		echo "no GPU: installing torch==$(TORCH_VERSION) (CPU)"; \
+		$(PIP) install --quiet torch==$(TORCH_VERSION); \
+	fi
+	$(PIP) install --quiet -e ".[test]"
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+# Headless Chromium for the report/dashboard browser tests (Debian package; needs root or sudo).
+browser-deps:
+	@if [ ! -x /usr/bin/chromium ]; then \
+		if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then \
+			(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+			|| echo "warning: could not install chromium; browser tests will be skipped"; \
+		else echo "warning: /usr/bin/chromium missing and not root; browser tests will be skipped"; fi; \
+	fi
+
+test: install browser-deps
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+demo: install
+	$(PY) -m bat3r_core.cli asset toy --out runs/toy/toy.glb
+
+bench: install
+	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf runs .pytest_cache
