@@ -30,7 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from bat3r_core.shards import ShardPaths, ok_mask, read_shard, write_shard
+from bat3r_core.shards import ShardPaths, list_shards, ok_mask, read_shard, write_shard
 
 FEATURE_CODE_VERSION = 1
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -62,6 +62,11 @@ class Dinov2Options:
     pca_max_images: int = 1000
     pca_max_tokens: int = 200_000
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("input_size", "channels", "pca_max_images", "pca_max_tokens"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"dinov2.{name} must be >= 1, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -569,8 +574,6 @@ def fit_pca_from_shards(shard_dirs: list[str | os.PathLike], cfg: FeatureConfig,
                         ) -> FeaturePCA:
     """Fit (or load, unless ``refit``) the ``dinov2`` PCA on the ok samples of collection or training shards
     (npz ``rgb``/``mask``), using at most ``cfg.dinov2.pca_max_images`` evenly spaced samples."""
-    from bat3r_core.shards import list_shards
-
     ext = get_extractor("dinov2")
     if not isinstance(ext, Dinov2Extractor):
         raise TypeError(f"the registered 'dinov2' extractor is a {type(ext).__name__}, not a Dinov2Extractor")

@@ -101,6 +101,8 @@ def test_input_checks():
         extract_features("rgb", rgb, mask.astype(np.uint8))
     with pytest.raises(ValueError, match=r"unknown feature extractor 'sd'; registered: \['dinov2', 'rgb'\]"):
         extract_features("sd", rgb, mask)
+    with pytest.raises(ValueError, match="dinov2.channels must be >= 1, got 0"):
+        Dinov2Options(channels=0)
     with pytest.raises(ValueError, match="batch_size must be >= 1, got 0"):
         FeatureConfig(batch_size=0)
     with pytest.raises(ValueError, match="device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got 'gpu0'"):
