@@ -1,0 +1,668 @@
+"""The run report: one self-contained ``report.html`` per run folder, rebuilt after every iteration.
+
+``build_report(run_dir)`` reads (all optional; a missing piece shows a "not available yet" note in its section):
+
+* ``manifest.json``: top-level scalar entries are listed in the summary.
+* ``metrics.parquet``: ``bat3r_core.evaluation.METRICS_SCHEMA`` rows (computed from the per-sample rows when the
+  file is missing).
+* ``iter-NN/evaluate/part-*.parquet``: per-sample rows, ``bat3r_core.evaluation.SAMPLE_SCHEMA``.
+* ``iter-NN/fit/part-*.parquet``: fit rows with ``sample_id, status, reason``, final losses as ``loss_*`` float
+  columns, optionally ``joint_err_cm, vertex_err_cm, angle_err_deg`` (pose errors where ground truth exists, see
+  ``bat3r_core.analysis.pose_errors``) and the estimated body-centric camera ``azimuth_deg, elevation_deg,
+  roll_deg``.
+* ``iter-NN/evaluate/qualitative.npz`` (``QUALITATIVE_FILE``, written by ``write_report_inputs``): S samples with
+  ``sample_id (S,) str``, ``image (S, H, W, 3) uint8``, ``intrinsics (S, 3, 3) float32`` (pixels of ``image``),
+  ``pred_points (S, P, 3) float32`` (metres, camera frame, absolute depth, NaN rows pad), optional
+  ``mask (S, H, W) bool``, ``fitted_verts (S, V, 3) float32`` (metres, camera frame, all NaN for a sample without a
+  fit) with ``faces (F, 3) int32``, and ``cd_cm (S,) float32``.
+
+Sections (HTML ids, stable): ``SECTION_IDS``. Every figure is a matplotlib (Agg) PNG embedded as base64.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import pyarrow as pa
+from matplotlib import colormaps
+from matplotlib.collections import PolyCollection
+from matplotlib.colors import Normalize
+from matplotlib.figure import Figure
+
+from bat3r_core import analysis, evaluation, shards
+
+__all__ = ["SECTION_IDS", "QUALITATIVE_FILE", "QualitativeInputs", "write_report_inputs", "read_report_inputs",
+           "build_report"]
+
+REPORT_FILE = "report.html"
+QUALITATIVE_FILE = "qualitative.npz"
+FIT_STAGE = "fit"
+SECTION_IDS = ("summary", "metrics-over-iterations", "ablation-table", "per-cluster", "failure-rates",
+               "camera-distribution", "angle-fits", "pseudo-labels", "qualitative")
+_TITLES = {
+    "summary": "Run summary",
+    "metrics-over-iterations": "Metrics across iterations",
+    "ablation-table": "Ablation-style table",
+    "per-cluster": "Per-cluster mCD",
+    "failure-rates": "Failure rates: azimuth × pose complexity",
+    "camera-distribution": "Camera distribution",
+    "angle-fits": "Student's t vs Normal fits of camera angles",
+    "pseudo-labels": "Pseudo-label quality",
+    "qualitative": "Qualitative results",
+}
+_MAX_QUALITATIVE = 4
+_COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf"]
+
+
+# ---------------------------------------------------------------------------------------------- report inputs
+
+@dataclass(frozen=True)
+class QualitativeInputs:
+    """Contents of ``qualitative.npz`` (see the module docstring for shapes, units and frames)."""
+
+    sample_id: np.ndarray
+    image: np.ndarray
+    intrinsics: np.ndarray
+    pred_points: np.ndarray
+    mask: np.ndarray | None = None
+    fitted_verts: np.ndarray | None = None
+    faces: np.ndarray | None = None
+    cd_cm: np.ndarray | None = None
+
+
+def write_report_inputs(stage_dir: str | os.PathLike, *, sample_ids: Sequence[str], images: np.ndarray,
+                        intrinsics: np.ndarray, pred_points: Sequence[np.ndarray], masks: np.ndarray | None = None,
+                        fitted_verts: np.ndarray | None = None, faces: np.ndarray | None = None,
+                        cd_cm: Sequence[float] | None = None, max_points: int = 3000, seed: int = 0) -> Path:
+    """Write ``stage_dir/qualitative.npz`` for the report's qualitative grid, atomically.
+
+    sample_ids: S ids. images: (S, H, W, 3) uint8. intrinsics: (S, 3, 3) pixels of ``images``.
+    pred_points: S arrays (P_s, 3), metres, camera frame with absolute depth; each is subsampled (seeded) to at most
+    ``max_points`` and NaN-padded to a common length. masks: (S, H, W) bool. fitted_verts: (S, V, 3) metres, camera
+    frame (NaN for samples without a fit), with faces (F, 3) int. cd_cm: (S,) per-sample RMS Chamfer (cm).
+    """
+    ids = [str(s) for s in sample_ids]
+    s = len(ids)
+    images = np.asarray(images)
+    if images.ndim != 4 or images.shape[0] != s or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"images must be (S={s}, H, W, 3) uint8, got {images.shape} {images.dtype}")
+    k = np.asarray(intrinsics, dtype=np.float32)
+    if k.shape != (s, 3, 3):
+        raise ValueError(f"intrinsics must have shape ({s}, 3, 3), got {k.shape}")
+    if len(pred_points) != s:
+        raise ValueError(f"pred_points must hold {s} arrays, got {len(pred_points)}")
+    rng = np.random.default_rng(seed)
+    clouds = []
+    for i, p in enumerate(pred_points):
+        p = np.asarray(p, dtype=np.float32)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"pred_points[{i}] must have shape (P, 3), got {p.shape}")
+        if len(p) > max_points:
+            p = p[np.sort(rng.choice(len(p), max_points, replace=False))]
+        clouds.append(p)
+    width = max([len(p) for p in clouds] + [1])
+    padded = np.full((s, width, 3), np.nan, dtype=np.float32)
+    for i, p in enumerate(clouds):
+        padded[i, : len(p)] = p
+    arrays = {"sample_id": np.asarray(ids, dtype=str), "image": images, "intrinsics": k, "pred_points": padded}
+    if masks is not None:
+        masks = np.asarray(masks, dtype=bool)
+        if masks.shape != images.shape[:3]:
+            raise ValueError(f"masks must have shape {images.shape[:3]}, got {masks.shape}")
+        arrays["mask"] = masks
+    if (fitted_verts is None) != (faces is None):
+        raise ValueError("fitted_verts and faces must be given together")
+    if fitted_verts is not None:
+        fv = np.asarray(fitted_verts, dtype=np.float32)
+        fc = np.asarray(faces)
+        if fv.ndim != 3 or fv.shape[0] != s or fv.shape[2] != 3:
+            raise ValueError(f"fitted_verts must have shape ({s}, V, 3), got {fv.shape}")
+        if fc.ndim != 2 or fc.shape[1] != 3 or not np.issubdtype(fc.dtype, np.integer):
+            raise ValueError(f"faces must be an (F, 3) integer array, got {fc.shape} {fc.dtype}")
+        arrays["fitted_verts"], arrays["faces"] = fv, fc.astype(np.int32)
+    if cd_cm is not None:
+        cd = np.asarray(cd_cm, dtype=np.float32)
+        if cd.shape != (s,):
+            raise ValueError(f"cd_cm must have shape ({s},), got {cd.shape}")
+        arrays["cd_cm"] = cd
+    path = Path(stage_dir) / QUALITATIVE_FILE
+    _atomic_bytes(path, _npz_bytes(arrays))
+    return path
+
+
+def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def _atomic_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_report_inputs(path: str | os.PathLike) -> QualitativeInputs:
+    """Load a ``qualitative.npz`` written by ``write_report_inputs`` (``allow_pickle=False``)."""
+    with np.load(path, allow_pickle=False) as z:
+        missing = [k for k in ("sample_id", "image", "intrinsics", "pred_points") if k not in z.files]
+        if missing:
+            raise ValueError(f"{path} lacks array(s) {missing}")
+        get = lambda k: z[k] if k in z.files else None  # noqa: E731
+        return QualitativeInputs(z["sample_id"], z["image"], z["intrinsics"], z["pred_points"], get("mask"),
+                                 get("fitted_verts"), get("faces"), get("cd_cm"))
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+def _png(fig: Figure, alt: str) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    data = base64.b64encode(buf.getvalue()).decode("ascii")
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _note(text: str) -> str:
+    return f'<p class="na">{html.escape(text)}</p>'
+
+
+def _fmt(v, digits: int = 2) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}"
+    return html.escape(str(v))
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence], cls: str = "") -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return f'<table class="{cls}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _col(table: pa.Table, name: str) -> np.ndarray:
+    if name not in table.column_names:
+        return np.full(table.num_rows, np.nan)
+    return np.array([np.nan if v is None else v for v in table.column(name).to_pylist()], dtype=np.float64)
+
+
+def _main_split(splits: Sequence[str]) -> str | None:
+    splits = sorted(set(splits))
+    return "test" if "test" in splits else (splits[0] if splits else None)
+
+
+def _iter_label(iteration: int) -> str:
+    return "0 (canonical)" if iteration == 0 else str(iteration)
+
+
+@dataclass
+class _RunData:
+    run_dir: Path
+    manifest: dict
+    metrics: pa.Table
+    metrics_note: str
+    samples: pa.Table
+    fits: dict[int, pa.Table]
+    qualitative: dict[int, Path]
+
+
+def _load(run_dir: Path) -> _RunData:
+    manifest: dict = {}
+    mpath = run_dir / "manifest.json"
+    if mpath.is_file():
+        try:
+            loaded = json.loads(mpath.read_text())
+            manifest = loaded if isinstance(loaded, dict) else {}
+        except (OSError, json.JSONDecodeError):
+            manifest = {}
+    samples = evaluation.read_sample_rows(run_dir)
+    metrics = evaluation.read_metrics(run_dir)
+    note = ""
+    if metrics.num_rows == 0 and samples.num_rows:
+        metrics = pa.Table.from_pylist(evaluation.aggregate(samples), schema=evaluation.METRICS_SCHEMA)
+        note = "metrics.parquet not written yet: values computed from the per-sample rows."
+    fits, qual = {}, {}
+    for it, d in evaluation.iteration_dirs(run_dir):
+        t = shards.read_table(d / FIT_STAGE)
+        if t.num_rows:
+            fits[it] = t
+        q = d / evaluation.EVALUATE_STAGE / QUALITATIVE_FILE
+        if q.is_file():
+            qual[it] = q
+    return _RunData(run_dir, manifest, metrics, note, samples, fits, qual)
+
+
+# ---------------------------------------------------------------------------------------------- sections
+
+def _section_summary(d: _RunData) -> str:
+    items = [(k, v) for k, v in d.manifest.items() if isinstance(v, (str, int, float, bool))]
+    iters = [it for it, _ in evaluation.iteration_dirs(d.run_dir)]
+    parts = [f"<p>Run folder <code>{html.escape(str(d.run_dir))}</code>; iteration folders: "
+             f"{', '.join(map(str, iters)) if iters else 'none yet'}.</p>"]
+    parts.append(_table(["manifest entry", "value"], items) if items else _note("manifest.json: not available yet."))
+    if d.metrics.num_rows:
+        last = d.metrics.to_pylist()
+        split = _main_split([r["split"] for r in last])
+        row = [r for r in last if r["split"] == split][-1]
+        parts.append(f'<p class="headline">Latest ({split}, iteration {row["iteration"]}): mCD '
+                     f'<b>{_fmt(row["mcd_cm"])} cm</b>, {_fmt(row["pct_mcd_over_5cm"], 1)} % over 5 cm, '
+                     f'ΔR {_fmt(row["rot_err_deg"])}°, n = {row["n"]}.</p>')
+    return "".join(parts)
+
+
+_METRIC_PLOTS = [("mcd_cm", "mCD (cm)"), ("pct_mcd_over_5cm", "% samples with CD > 5 cm"),
+                 ("rot_err_deg", "ΔR (°)"), ("rms_cd_cm", "RMS CD (cm)"), ("mv_rms_cd_cm", "model-view RMS CD (cm)")]
+
+
+def _section_metrics(d: _RunData) -> str:
+    if d.metrics.num_rows == 0:
+        return _note("No metrics yet: they appear once an iteration has been evaluated.")
+    rows = d.metrics.to_pylist()
+    splits = sorted({r["split"] for r in rows})
+    fig = Figure(figsize=(3.2 * len(_METRIC_PLOTS), 3.0))
+    for k, (col, label) in enumerate(_METRIC_PLOTS):
+        ax = fig.add_subplot(1, len(_METRIC_PLOTS), k + 1)
+        for c, split in enumerate(splits):
+            pts = sorted((r["iteration"], r.get(col)) for r in rows if r["split"] == split)
+            x = [p[0] for p in pts]
+            y = [np.nan if p[1] is None else p[1] for p in pts]
+            ax.plot(x, y, marker="o", color=_COLORS[c % len(_COLORS)], label=split)
+        ax.set_title(label, fontsize=10)
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+        ax.xaxis.get_major_locator().set_params(integer=True)
+    fig.axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    out = _png(fig, "metrics across iterations")
+    return (_note(d.metrics_note) if d.metrics_note else "") + out
+
+
+def _section_ablation(d: _RunData) -> str:
+    if d.metrics.num_rows == 0:
+        return _note("No metrics yet.")
+    rows = d.metrics.to_pylist()
+    has_variant = "variant" in d.metrics.column_names
+    header = (["variant"] if has_variant else []) + ["iteration", "split", "n", "failed", "mCD (cm)",
+                                                     "% mCD > 5 cm", "ΔR (°)", "RMS CD (cm)", "MV RMS CD (cm)"]
+    body = [([r.get("variant") or ""] if has_variant else []) +
+            [_iter_label(r["iteration"]), r["split"], r["n"], r.get("n_failed"), r["mcd_cm"],
+             r["pct_mcd_over_5cm"], r["rot_err_deg"], r["rms_cd_cm"], r["mv_rms_cd_cm"]] for r in rows]
+    return _table(header, body, "num") + (
+        "<p class=\"caption\">mCD: mean over samples of the per-sample RMS Chamfer distance after ICP with scale; "
+        "RMS CD: root mean square of the same; MV: model-view alignment (scale and translation only).</p>")
+
+
+def _section_clusters(d: _RunData) -> str:
+    if d.samples.num_rows == 0:
+        return _note("No per-sample evaluation rows yet.")
+    split = _main_split(d.samples.column("split").to_pylist())
+    rows = [r for r in evaluation.cluster_breakdown(d.samples) if r["split"] == split]
+    if not rows:
+        return _note("No cluster ids in the per-sample rows yet (cluster = -1).")
+    iters = sorted({r["iteration"] for r in rows})
+    clusters = sorted({r["cluster"] for r in rows})
+    fig = Figure(figsize=(max(6.0, 0.7 * len(clusters) * max(1, len(iters)) ** 0.5 + 3), 3.4))
+    ax = fig.add_subplot(1, 1, 1)
+    width = 0.8 / len(iters)
+    for j, it in enumerate(iters):
+        vals = {r["cluster"]: r["mcd_cm"] for r in rows if r["iteration"] == it}
+        x = np.arange(len(clusters)) + (j - (len(iters) - 1) / 2) * width
+        ax.bar(x, [vals.get(c, np.nan) for c in clusters], width, label=f"iteration {_iter_label(it)}",
+               color=_COLORS[j % len(_COLORS)])
+    ax.axhline(evaluation.FAILURE_THRESHOLD_CM, color="grey", ls="--", lw=0.8)
+    ax.set_xticks(np.arange(len(clusters)), [str(c) for c in clusters])
+    ax.set_xlabel("pose cluster (ordered by mean f_dist)")
+    ax.set_ylabel("mCD (cm)")
+    ax.set_title(f"mCD per cluster, split '{split}'", fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    last = [r for r in rows if r["iteration"] == iters[-1]]
+    table = _table(["cluster", "n", "mCD (cm)", "% > 5 cm", "MV mCD (cm)", "ΔR (°)"],
+                   [[r["cluster"], r["n"], r["mcd_cm"], r["pct_mcd_over_5cm"], r["mv_mcd_cm"], r["rot_err_deg"]]
+                    for r in last], "num")
+    return _png(fig, "per-cluster mCD") + f"<p class=\"caption\">Latest iteration ({iters[-1]}):</p>" + table
+
+
+def _section_failures(d: _RunData) -> str:
+    if d.samples.num_rows == 0:
+        return _note("No per-sample evaluation rows yet.")
+    t = d.samples.filter(pa.array(shards.ok_mask(d.samples)))
+    split = _main_split(t.column("split").to_pylist()) if t.num_rows else None
+    if split is None:
+        return _note("No successfully evaluated samples yet.")
+    t = t.filter(pa.array([s == split for s in t.column("split").to_pylist()]))
+    fd_all = _col(t, "f_dist")
+    if not np.isfinite(fd_all).any() or not np.isfinite(_col(t, "azimuth_deg")).any():
+        return _note("Azimuth or f_dist not recorded in the per-sample rows yet.")
+    # shared f_dist bins (quartiles over all iterations) so the heat maps are comparable
+    edges = np.unique(np.quantile(fd_all[np.isfinite(fd_all)], np.linspace(0, 1, 5)))
+    if len(edges) < 2:
+        edges = np.array([edges[0], edges[0] + 1e-9])
+    its = sorted(set(t.column("iteration").to_pylist()))
+    fig = Figure(figsize=(4.6 * len(its) + 1.0, 3.4), layout="constrained")
+    cmap = colormaps["RdYlGn_r"].with_extremes(bad="#d9d9d9")
+    image = None
+    for k, it in enumerate(its):
+        sub = t.filter(pa.array([i == it for i in t.column("iteration").to_pylist()]))
+        fr = evaluation.failure_rates(_col(sub, "azimuth_deg"), _col(sub, "f_dist"), _col(sub, "cd_cm"),
+                                      f_dist_edges=edges)
+        ax = fig.add_subplot(1, len(its), k + 1)
+        image = ax.imshow(100 * fr.rate, origin="lower", aspect="auto", cmap=cmap, vmin=0, vmax=100,
+                          extent=(fr.azimuth_edges[0], fr.azimuth_edges[-1], 0, len(edges) - 1))
+        ax.set_xticks([-180, -90, 0, 90, 180])
+        ax.set_yticks(np.arange(len(edges) - 1) + 0.5, [f"{edges[i]:.2f}–{edges[i + 1]:.2f}"
+                                                         for i in range(len(edges) - 1)], fontsize=7)
+        ax.set_xlabel("azimuth (°; 0 front, ±90 side)")
+        if k == 0:
+            ax.set_ylabel("f_dist bin (m)")
+        ax.set_title(f"iteration {_iter_label(it)}", fontsize=10)
+    fig.colorbar(image, ax=fig.axes, label="% CD > 5 cm", fraction=0.03)
+    return _png(fig, "failure rates") + (f'<p class="caption">Split \'{html.escape(split)}\': percentage of '
+                                         "samples with CD > 5 cm per azimuth bin (30°) and f_dist quartile; grey "
+                                         "cells hold no samples.</p>")
+
+
+def _camera_sources(d: _RunData) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """[(label, azimuth, elevation, roll, cluster)] of the datasets with camera angles."""
+    out = []
+    if d.samples.num_rows:
+        its = d.samples.column("iteration").to_pylist()
+        last = max(its)
+        t = d.samples.filter(pa.array([i == last for i in its]))
+        az = _col(t, "azimuth_deg")
+        if np.isfinite(az).any():
+            out.append(("test set (ground-truth cameras)", az, _col(t, "elevation_deg"), _col(t, "roll_deg"),
+                        _col(t, "cluster")))
+    if d.fits:
+        it = max(d.fits)
+        t = d.fits[it]
+        az = _col(t, "azimuth_deg")
+        if np.isfinite(az).any():
+            out.append((f"collection (estimated cameras, iteration {it})", az, _col(t, "elevation_deg"),
+                        _col(t, "roll_deg"), _col(t, "cluster")))
+    return out
+
+
+def _heat(ax, counts: np.ndarray, xe: np.ndarray, ye: np.ndarray, xlabel: str, ylabel: str, title: str,
+          vmax: float | None = None):
+    im = ax.imshow(analysis.CameraHistograms.log_counts(counts), origin="lower", aspect="auto", cmap="viridis",
+                   extent=(xe[0], xe[-1], ye[0], ye[-1]), vmin=0.0, vmax=vmax)
+    ax.set_xlabel(xlabel, fontsize=8)
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.set_title(title, fontsize=9)
+    return im
+
+
+def _section_cameras(d: _RunData) -> str:
+    sources = _camera_sources(d)
+    if not sources:
+        return _note("No camera angles recorded yet (azimuth_deg/elevation_deg/roll_deg in the evaluation or fit "
+                     "rows).")
+    parts = []
+    for label, az, el, ro, cl in sources:
+        h = analysis.camera_histograms(az, el, ro)
+        fig = Figure(figsize=(13, 3.4), layout="constrained")
+        ims = [
+            _heat(fig.add_subplot(1, 3, 1), h.az_el, h.az_edges, h.el_edges, "azimuth (°)", "elevation (°)", ""),
+            _heat(fig.add_subplot(1, 3, 2), h.az_roll, h.az_edges, h.roll_edges, "azimuth (°)", "roll (°)", ""),
+            _heat(fig.add_subplot(1, 3, 3), h.el_roll, h.el_edges, h.roll_edges, "elevation (°)", "roll (°)", ""),
+        ]
+        fig.colorbar(ims[-1], ax=fig.axes, label="log10(1 + count)", fraction=0.02)
+        fig.suptitle(f"{label}: {h.n} samples ({h.n_outside} outside the plotted range or missing)", fontsize=10)
+        parts.append(_png(fig, f"camera heat maps, {label}"))
+        finite = np.isfinite(cl) & (cl >= 0)
+        if finite.any():
+            per = analysis.camera_histograms_by_cluster(az[finite], el[finite], ro[finite], cl[finite].astype(int))
+            n = len(per)
+            cols = min(5, n)
+            rows = int(math.ceil(n / cols))
+            fig = Figure(figsize=(2.8 * cols, 2.4 * rows), layout="constrained")
+            vmax = max(float(analysis.CameraHistograms.log_counts(hc.az_el).max()) for hc in per.values()) or 1.0
+            for k, (c, hc) in enumerate(per.items()):
+                ax = fig.add_subplot(rows, cols, k + 1)
+                im = _heat(ax, hc.az_el, hc.az_edges, hc.el_edges, "azimuth (°)", "elevation (°)",
+                           f"cluster {c} (n={hc.n})", vmax=vmax)
+            fig.colorbar(im, ax=fig.axes, label="log10(1 + count)", fraction=0.02)
+            fig.suptitle(f"{label}: azimuth × elevation per pose cluster (log scale)", fontsize=10)
+            parts.append(_png(fig, f"camera heat maps per cluster, {label}"))
+    return "".join(parts)
+
+
+def _section_angle_fits(d: _RunData) -> str:
+    sources = _camera_sources(d)
+    if not sources:
+        return _note("No camera angles recorded yet.")
+    label, _, el, ro, _ = sources[-1]  # prefer the collection's estimated cameras when present
+    try:
+        fits = analysis.fit_camera_angles(el, ro)
+    except ImportError:
+        return _note("bat3r_core.viewpoints.fit_angle_distribution is not available yet.")
+    except ValueError as exc:
+        return _note(f"Too few camera angles to fit yet ({exc}).")
+    fig = Figure(figsize=(11, 3.4))
+    for k, (name, values) in enumerate((("elevation", el), ("roll", ro))):
+        fit = fits[name]
+        v = values[np.isfinite(values)]
+        ax = fig.add_subplot(1, 2, k + 1)
+        lo, hi = np.percentile(v, [0.5, 99.5])
+        pad = 0.1 * (hi - lo) + 1.0
+        grid = np.linspace(lo - pad, hi + pad, 400)
+        ax.hist(v, bins=60, range=(grid[0], grid[-1]), density=True, color="#bbbbbb", label="samples")
+        pdf_t, pdf_n = analysis.angle_fit_densities(fit, grid)
+        df, loc, scale = fit.student_t
+        ax.plot(grid, pdf_t, color=_COLORS[0], lw=2,
+                label=f"Student's t (df={df:.2f}, loc={loc:.2f}, scale={scale:.2f}); LL={fit.loglik_t:.1f}")
+        ax.plot(grid, pdf_n, color=_COLORS[1], lw=2, ls="--",
+                label=f"Normal (loc={fit.normal[0]:.2f}, σ={fit.normal[1]:.2f}); LL={fit.loglik_normal:.1f}")
+        ax.set_xlabel(f"{name} (°)")
+        ax.set_ylabel("density")
+        ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{label}", fontsize=10)
+    fig.tight_layout()
+    rows = [[name, *fits[name].student_t, *fits[name].normal, fits[name].loglik_t, fits[name].loglik_normal]
+            for name in ("elevation", "roll")]
+    return _png(fig, "angle fits") + _table(["angle", "t df", "t loc", "t scale", "normal loc", "normal σ",
+                                             "log-lik t", "log-lik normal"], rows, "num")
+
+
+def _section_pseudo_labels(d: _RunData) -> str:
+    if not d.fits:
+        return _note("No fits yet: iteration 0 trains on canonical renders; fits appear from iteration 1 on.")
+    summaries = {it: analysis.summarize_pseudo_labels(t) for it, t in sorted(d.fits.items())}
+    statuses = sorted({s for m in summaries.values() for s in m.status_counts})
+    rows = [[it, m.n, m.n_ok, *[m.status_counts.get(s, 0) for s in statuses if s != "ok"], m.mean_joint_err_cm,
+             m.mean_vertex_err_cm, m.mean_angle_err_deg] for it, m in summaries.items()]
+    header = ["iteration", "fits", "kept (ok)", *[f"{s}" for s in statuses if s != "ok"],
+              "joint err (cm)", "vertex err (cm)", "angle err (°)"]
+    parts = [_table(header, rows, "num")]
+    loss_names = sorted({k for m in summaries.values() for k in m.losses})
+    if loss_names:
+        main = "loss_total" if "loss_total" in loss_names else loss_names[0]
+        fig = Figure(figsize=(11, 3.2))
+        ax = fig.add_subplot(1, 2, 1)
+        for j, (it, m) in enumerate(summaries.items()):
+            v = m.losses.get(main, np.array([]))
+            if len(v):
+                ax.hist(v, bins=30, histtype="step", lw=1.5, color=_COLORS[j % len(_COLORS)],
+                        label=f"iteration {it}")
+        ax.set_xlabel(main)
+        ax.set_ylabel("fits")
+        ax.set_title("final fitting loss (kept fits)", fontsize=10)
+        ax.legend(fontsize=8)
+        ax = fig.add_subplot(1, 2, 2)
+        its = list(summaries)
+        for j, name in enumerate(loss_names):
+            med = [float(np.median(summaries[i].losses[name])) if len(summaries[i].losses.get(name, [])) else np.nan
+                   for i in its]
+            ax.plot(its, med, marker="o", color=_COLORS[j % len(_COLORS)], label=name)
+        ax.set_yscale("log")
+        ax.set_xlabel("iteration")
+        ax.set_title("median of each loss term", fontsize=10)
+        ax.legend(fontsize=7)
+        ax.xaxis.get_major_locator().set_params(integer=True)
+        fig.tight_layout()
+        parts.append(_png(fig, "fitting losses"))
+    else:
+        parts.append(_note("No loss_* columns in the fit rows yet."))
+    reasons = [[it, r, c] for it, m in summaries.items() for r, c in list(m.reason_counts.items())[:8]]
+    parts.append(_table(["iteration", "why filtered / failed", "samples"], reasons) if reasons
+                 else "<p>No fit was filtered or failed.</p>")
+    return "".join(parts)
+
+
+def _project(points: np.ndarray, k: np.ndarray) -> np.ndarray:
+    z = np.where(np.abs(points[:, 2]) < 1e-9, 1e-9, points[:, 2])
+    return np.stack([k[0, 0] * points[:, 0] / z + k[0, 2], k[1, 1] * points[:, 1] / z + k[1, 2]], 1)
+
+
+def _point_size(n: int) -> float:
+    return float(np.clip(4000.0 / max(n, 1), 1.0, 14.0))
+
+
+def _qualitative_figure(q: QualitativeInputs) -> Figure:
+    s = min(len(q.sample_id), _MAX_QUALITATIVE)
+    fig = Figure(figsize=(11, 2.8 * s), layout="constrained")
+    titles = ["input image", "prediction, input view", "prediction, novel view (90° about up)",
+              "fitted mesh overlay"]
+    for i in range(s):
+        img = q.image[i]
+        h, w = img.shape[:2]
+        extent = (0, w, h, 0)  # pixel centres at (j + 0.5, i + 0.5)
+        pts = q.pred_points[i].astype(np.float64)
+        pts = pts[np.isfinite(pts).all(1)]
+        axes = [fig.add_subplot(s, 4, 4 * i + c + 1) for c in range(4)]
+        axes[0].imshow(img, extent=extent)
+        cd = "" if q.cd_cm is None or not np.isfinite(q.cd_cm[i]) else f"\nCD {q.cd_cm[i]:.2f} cm"
+        axes[0].set_ylabel(f"{q.sample_id[i]}{cd}", fontsize=8)
+        axes[1].imshow(img, extent=extent, alpha=0.35)
+        for ax in axes[1:3]:
+            ax.set_facecolor("#15171c")
+        if len(pts):
+            size = _point_size(len(pts))
+            norm = Normalize(float(pts[:, 2].min()), float(pts[:, 2].max()) + 1e-9)
+            uv = _project(pts, q.intrinsics[i])
+            axes[1].scatter(uv[:, 0], uv[:, 1], c=pts[:, 2], s=size, cmap="turbo", norm=norm, linewidths=0)
+            # novel view: rotate 90° about the camera's vertical (y) axis around the centroid, orthographic
+            rot = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+            nv = (pts - pts.mean(0)) @ rot.T
+            axes[2].scatter(nv[:, 0], -nv[:, 1], c=nv[:, 2], s=size, cmap="turbo", linewidths=0)
+            half = 0.55 * float(np.ptp(nv[:, :2], axis=0).max() + 1e-6)
+            axes[2].set_xlim(-half, half)
+            axes[2].set_ylim(-half, half)
+            axes[2].set_aspect("equal")
+        else:
+            axes[2].text(0.5, 0.5, "no points", ha="center", va="center", color="white",
+                         transform=axes[2].transAxes)
+        axes[1].set_xlim(0, w)
+        axes[1].set_ylim(h, 0)
+        axes[3].imshow(img, extent=extent)
+        fv = None if q.fitted_verts is None else q.fitted_verts[i]
+        if fv is not None and np.isfinite(fv).all() and len(q.faces):
+            uv = _project(fv.astype(np.float64), q.intrinsics[i])
+            axes[3].add_collection(PolyCollection(uv[q.faces], facecolors=(0.2, 0.8, 1.0, 0.18),
+                                                  edgecolors=(0.2, 0.9, 1.0, 0.7), linewidths=0.4))
+            axes[3].set_xlim(0, w)
+            axes[3].set_ylim(h, 0)
+        else:
+            axes[3].text(0.5, 0.5, "no fit", ha="center", va="center", transform=axes[3].transAxes,
+                         color="white", fontsize=12, bbox={"facecolor": "black", "alpha": 0.5})
+        for c, ax in enumerate(axes):
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if i == 0:
+                ax.set_title(titles[c], fontsize=9)
+    return fig
+
+
+def _section_qualitative(d: _RunData) -> str:
+    if not d.qualitative:
+        return _note("No qualitative samples yet (iter-NN/evaluate/qualitative.npz).")
+    parts = []
+    for it, path in sorted(d.qualitative.items(), reverse=True):
+        try:
+            q = read_report_inputs(path)
+        except (OSError, ValueError) as exc:
+            parts.append(_note(f"iteration {it}: {path.name} unreadable ({exc})."))
+            continue
+        parts.append(f"<h3>Iteration {_iter_label(it)}</h3>" + _png(_qualitative_figure(q), f"qualitative {it}"))
+    return "".join(parts)
+
+
+_SECTIONS: dict[str, Callable[[_RunData], str]] = {
+    "summary": _section_summary,
+    "metrics-over-iterations": _section_metrics,
+    "ablation-table": _section_ablation,
+    "per-cluster": _section_clusters,
+    "failure-rates": _section_failures,
+    "camera-distribution": _section_cameras,
+    "angle-fits": _section_angle_fits,
+    "pseudo-labels": _section_pseudo_labels,
+    "qualitative": _section_qualitative,
+}
+
+_CSS = """
+body{font-family:system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;color:#222;background:#f6f7f9}
+header{background:#243447;color:#fff;padding:16px 32px}header h1{margin:0;font-size:22px}
+header p{margin:4px 0 0;color:#c9d3de;font-size:13px}
+nav{position:sticky;top:0;background:#fff;border-bottom:1px solid #dde;padding:8px 32px;z-index:1;font-size:13px}
+nav a{margin-right:14px;color:#245;text-decoration:none}nav a:hover{text-decoration:underline}
+main{padding:8px 32px 40px;max-width:1500px}
+section{background:#fff;border:1px solid #e2e5ea;border-radius:6px;margin:16px 0;padding:12px 20px}
+section h2{font-size:18px;margin:4px 0 10px;color:#243447}h3{font-size:15px;margin:14px 0 6px}
+img{max-width:100%;height:auto;display:block;margin:6px 0}
+table{border-collapse:collapse;font-size:13px;margin:6px 0}th,td{padding:4px 10px;border-bottom:1px solid #e6e8ec}
+th{background:#f0f2f5;text-align:left}table.num td{text-align:right}table.num td:first-child{text-align:left}
+.na{color:#8a6d00;background:#fff8e0;border-left:4px solid #f0c040;padding:6px 10px}
+.error{color:#9b1c1c;background:#fdecec;border-left:4px solid #d33;padding:6px 10px}
+.caption{color:#555;font-size:12px}.headline{font-size:15px}code{font-size:12px}
+"""
+
+
+def build_report(run_dir: str | os.PathLike) -> Path:
+    """Write ``run_dir/report.html`` (self-contained, atomic) from whatever the run folder holds; return its path.
+
+    Never fails because a piece is missing or unreadable: such a section shows a note instead (an unexpected error
+    inside one section is shown in that section, with its message, and the other sections are still drawn).
+    Raises ``FileNotFoundError`` only when ``run_dir`` is not a folder.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run folder {run_dir} does not exist")
+    data = _load(run_dir)
+    body = []
+    for sid in SECTION_IDS:
+        try:
+            content = _SECTIONS[sid](data)
+        except Exception as exc:  # one broken input must not take the whole report down
+            content = f'<p class="error">This section could not be drawn: {html.escape(type(exc).__name__)}: ' \
+                      f'{html.escape(str(exc))}</p>'
+        body.append(f'<section id="{sid}"><h2>{html.escape(_TITLES[sid])}</h2>{content}</section>')
+    title = " / ".join(str(data.manifest[k]) for k in ("category", "run_name") if k in data.manifest) \
+        or run_dir.name
+    nav = "".join(f'<a href="#{sid}">{html.escape(_TITLES[sid])}</a>' for sid in SECTION_IDS)
+    page = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>bat3r report: '
+            f'{html.escape(title)}</title><style>{_CSS}</style></head><body><header><h1>bat3r run report: '
+            f'{html.escape(title)}</h1><p>{html.escape(str(run_dir))}</p></header><nav>{nav}</nav><main>'
+            + "".join(body) + "</main></body></html>")
+    path = run_dir / REPORT_FILE
+    _atomic_bytes(path, page.encode("utf-8"))
+    return path
