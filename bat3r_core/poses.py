@@ -19,7 +19,7 @@ from scipy.special import ndtr, ndtri
 from .rig import Rig
 
 __all__ = ["RandomPoseConfig", "sample_random_poses", "sample_toy_natural_poses", "TOY_POSE_FAMILIES",
-           "pose_features", "kabsch"]
+           "pose_features"]
 
 
 @dataclass(frozen=True)
@@ -213,35 +213,6 @@ def sample_toy_natural_poses(n: int, seed: int, families: tuple[str, ...] = TOY_
 # ------------------------------------------------------------------------------------------- features
 
 
-def kabsch(source: np.ndarray, target: np.ndarray, with_scale: bool = False
-           ) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity (or rigid) transform mapping ``source`` onto ``target`` (Kabsch–Umeyama).
-
-    Args:
-        source, target: (N, 3) corresponding points.
-    Returns:
-        (s, R (3, 3), t (3,)) with ``target ≈ s R source + t`` (s = 1 unless ``with_scale``).
-    """
-    source = np.asarray(source, dtype=np.float64)
-    target = np.asarray(target, dtype=np.float64)
-    if source.shape != target.shape or source.ndim != 2 or source.shape[1] != 3:
-        raise ValueError(f"source and target must both be (N, 3); got {source.shape} and {target.shape}")
-    mu_s, mu_t = source.mean(0), target.mean(0)
-    xs, xt = source - mu_s, target - mu_t
-    cov = xt.T @ xs / len(source)
-    u, d, vt = np.linalg.svd(cov)
-    s_fix = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        s_fix[2, 2] = -1.0
-    r = u @ s_fix @ vt
-    scale = 1.0
-    if with_scale:
-        var = (xs * xs).sum() / len(source)
-        scale = float((d * np.diag(s_fix)).sum() / max(var, 1e-300))
-    t = mu_t - scale * r @ mu_s
-    return scale, r, t
-
-
 def pose_features(excess_rotations: np.ndarray, posed_joints: np.ndarray, rest_joints: np.ndarray,
                   exclude: np.ndarray | None = None) -> np.ndarray:
     """Pose features ``[f_ang, f_sq, f_dist]`` of the supplement.
@@ -270,8 +241,8 @@ def pose_features(excess_rotations: np.ndarray, posed_joints: np.ndarray, rest_j
     ang = np.linalg.norm(theta[:, keep], axis=-1)
     f_ang = ang.mean(1)
     f_sq = (ang ** 2).mean(1)
-    f_dist = np.empty(len(theta))
-    for i in range(len(theta)):
-        _, r, t = kabsch(posed[i], rest)
-        f_dist[i] = np.linalg.norm(posed[i] @ r.T + t - rest, axis=1).sum()
+    from .metrics import kabsch
+
+    f_dist = np.array([np.linalg.norm(kabsch(posed[i], rest).apply(posed[i]) - rest, axis=1).sum()
+                       for i in range(len(theta))])
     return np.stack([f_ang, f_sq, f_dist], 1)

@@ -3,7 +3,7 @@ import pytest
 import torch
 from scipy import stats
 
-from bat3r_core.poses import (RandomPoseConfig, kabsch, pose_features, sample_random_poses,
+from bat3r_core.poses import (RandomPoseConfig, pose_features, sample_random_poses,
                               sample_toy_natural_poses, TOY_POSE_FAMILIES)
 from bat3r_core.skinning import axis_angle_to_matrix, skin
 
@@ -92,14 +92,3 @@ def test_pose_features_zero_at_rest_and_invariant_to_global_rotation(toy_rig):
     norms = np.linalg.norm(theta, axis=-1)
     np.testing.assert_allclose(f[:, 0], norms.mean(1))
     np.testing.assert_allclose(f[:, 1], (norms ** 2).mean(1))
-
-
-def test_kabsch_recovers_a_similarity():
-    rng = np.random.default_rng(0)
-    x = rng.normal(size=(50, 3))
-    r = axis_angle_to_matrix(torch.tensor([0.4, 2.5, -0.3], dtype=torch.float64)).numpy()
-    y = 1.7 * x @ r.T + np.array([0.1, -2, 5])
-    s, r2, t2 = kabsch(x, y, with_scale=True)
-    assert abs(s - 1.7) < 1e-9 and np.allclose(r2, r) and np.allclose(t2, [0.1, -2, 5])
-    with pytest.raises(ValueError, match="must both be"):
-        kabsch(x, y[:10])
