@@ -131,6 +131,8 @@ def view_type(azimuth_deg: np.ndarray | float) -> np.ndarray | str:
     """View type of azimuth(s) in degrees (wrapped first): front [-30, 30), left [30, 150), right [-150, -30),
     rear otherwise. Returns a str for a scalar, else an array of str with the input's shape."""
     a = np.asarray(wrap_degrees(azimuth_deg))
+    if not np.isfinite(a).all():
+        raise ValueError(f"azimuth_deg must be finite; {int((~np.isfinite(a)).sum())} value(s) are not")
     out = np.full(a.shape, "rear", dtype="<U5")
     out[(a >= -30) & (a < 30)] = "front"
     out[(a >= 30) & (a < 150)] = "left"

@@ -146,9 +146,10 @@ def test_camera_looking_away_gives_empty_maps_with_a_status(toy):
     m = dual_point_maps(posed, canon, faces, away)
     assert m.status == "empty" and "no pixel ray hits the mesh" in m.reason
     assert not m.occupancy.any() and not m.P.any() and not m.Q.any()
-    # partly behind the camera: still no crash, every ray tested
+    # camera inside the closed body (vertices on both sides of it): every ray leaves the surface once at least
     inside = cam.with_pose(cam.R, cam.R @ -frame.origin)
-    assert dual_point_maps(posed, canon, faces, inside).status in ("ok", "empty")
+    m = dual_point_maps(posed, canon, faces, inside)
+    assert m.status == "ok" and m.mask.mean() > 0.99 and (m.P[..., 2][m.occupancy] > 0).all()
 
 
 def test_degenerate_faces_are_skipped(toy):

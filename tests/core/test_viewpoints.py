@@ -123,6 +123,8 @@ def test_view_type_bins(azimuth, expected):
 def test_view_type_vectorised_agrees_with_scalar():
     az = np.linspace(-400, 400, 1601)
     np.testing.assert_array_equal(view_type(az), [view_type(float(a)) for a in az])
+    with pytest.raises(ValueError, match=r"azimuth_deg must be finite; 1 value\(s\) are not"):
+        view_type(np.array([0.0, np.nan]))
 
 
 # ---------------------------------------------------------------------------------------------- prior
