@@ -248,10 +248,12 @@ def skin(rig: RigTensors, excess_rotations: torch.Tensor, bone_scales: torch.Ten
     _check_batch("global_rotation", global_rotation, (b, 3, 3))
     _check_batch("global_translation", global_translation, (b, 3))
     g = forward_kinematics(rig, excess_rotations, bone_scales)  # (B, J, 4, 4)
-    skinning_mats = g @ rig.inverse_rest_transforms  # (B, J, 4, 4)
-    # blend the 3×4 affine part per vertex: (B, V, 3, 4) = Σ_j w_vj M_j
-    blended = torch.einsum("vj,bjrc->bvrc", rig.skin_weights, skinning_mats[:, :, :3, :])
-    verts = (blended[..., :3] @ rig.rest_vertices[None, :, :, None])[..., 0] + blended[..., 3]
+    b, j = g.shape[:2]
+    skinning_mats = (g @ rig.inverse_rest_transforms)[:, :, :3, :].reshape(b, j, 12)  # (B, J, 12)
+    # blend the 3×4 affine parts per vertex with one GEMM: (V, J) @ (B, J, 12) → (B, V, 3, 4)
+    blended = torch.matmul(rig.skin_weights, skinning_mats).view(b, -1, 3, 4)
+    # apply to the rest vertices elementwise (avoids B·V tiny matmuls): (B, V, 3)
+    verts = (blended[..., :3] * rig.rest_vertices[None, :, None, :]).sum(-1) + blended[..., 3]
     joints = g[:, :, :3, 3]
     verts = apply_similarity(verts, global_scale, global_rotation, global_translation)
     joints = apply_similarity(joints, global_scale, global_rotation, global_translation)
