@@ -1,0 +1,1 @@
+"""Rendering: render jobs, the Blender worker (run in subprocesses) and the shard runner. No bpy here."""

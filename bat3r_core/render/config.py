@@ -1,0 +1,124 @@
+"""Render settings (:class:`RenderConfig`), named presets, and the scene assets a worker renders with.
+
+Pure data, no bpy: the runner, the data catalog and the job builders import this; the worker receives it as JSON.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any, Literal, Mapping
+
+from bat3r_core.config_utils import ConfigError, from_mapping
+
+__all__ = ["RenderConfig", "RENDER_PRESETS", "render_config", "SceneAssets", "DEVICES"]
+
+DEVICES = ("CPU", "CUDA", "OPTIX", "HIP", "METAL")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """How images are rendered (Cycles) and labelled (ray casting).
+
+    Attributes:
+        resolution: square image side in pixels used by the job builders (the worker renders each job's own
+            ``width`` x ``height``).
+        samples: Cycles samples per pixel.
+        denoise: run OpenImageDenoise on the image.
+        device: ``CPU`` or a GPU backend (``CUDA``/``OPTIX``/``HIP``/``METAL``); the GPU index comes from
+            ``CUDA_VISIBLE_DEVICES`` (one device per worker process).
+        threads: Cycles CPU threads (0 = all cores).
+        filter_width: Cycles pixel filter width in pixels (Blackman-Harris). Smaller keeps the Object Index mask
+            closer to the ray-cast pixel-centre occupancy; 1.5 is Blender's default.
+        view_transform: colour view transform (``Standard``, ``AgX``, ``Filmic``...).
+        exposure: film exposure in stops.
+        recycle_every: a worker process renders at most this many images, then a fresh one takes over
+            (bpy memory grows over many renders).
+        retries: how many times the remaining jobs of a shard are retried after the worker process crashed.
+        timeout_s: seconds allowed per image (plus ``startup_timeout_s`` per process) before the process is killed.
+        startup_timeout_s: seconds allowed for a worker process to start and load the asset.
+        num_layers: K, layers of the ray-cast dual point maps.
+        max_bounces: Cycles light bounces.
+    """
+
+    resolution: int = 128
+    samples: int = 16
+    denoise: bool = False
+    device: Literal["CPU", "CUDA", "OPTIX", "HIP", "METAL"] = "CPU"
+    threads: int = 0
+    filter_width: float = 1.0
+    view_transform: str = "Standard"
+    exposure: float = 0.0
+    recycle_every: int = 256
+    retries: int = 2
+    timeout_s: float = 60.0
+    startup_timeout_s: float = 120.0
+    num_layers: int = 4
+    max_bounces: int = 4
+
+    def __post_init__(self) -> None:
+        checks = [("resolution", self.resolution >= 8, ">= 8"), ("samples", self.samples >= 1, ">= 1"),
+                  ("threads", self.threads >= 0, ">= 0"),
+                  ("filter_width", 0.01 <= self.filter_width <= 10, "in [0.01, 10]"),
+                  ("recycle_every", self.recycle_every >= 1, ">= 1"), ("retries", self.retries >= 0, ">= 0"),
+                  ("timeout_s", self.timeout_s > 0, "> 0"), ("startup_timeout_s", self.startup_timeout_s > 0, "> 0"),
+                  ("num_layers", self.num_layers >= 1, ">= 1"), ("max_bounces", self.max_bounces >= 0, ">= 0"),
+                  ("exposure", math.isfinite(self.exposure), "finite")]
+        for name, ok, expected in checks:
+            if not ok:
+                raise ValueError(f"RenderConfig.{name} must be {expected}, got {getattr(self, name)!r}")
+        if self.device not in DEVICES:
+            raise ValueError(f"RenderConfig.device must be one of {DEVICES}, got {self.device!r}")
+
+
+RENDER_PRESETS: dict[str, RenderConfig] = {
+    "test": RenderConfig(resolution=32, samples=2, recycle_every=64, timeout_s=30.0),
+    "tiny": RenderConfig(resolution=64, samples=8),
+    "demo": RenderConfig(resolution=128, samples=16),
+    "paper": RenderConfig(resolution=160, samples=64, denoise=True, filter_width=1.5, recycle_every=500),
+    "paper_gpu": RenderConfig(resolution=160, samples=128, denoise=True, device="OPTIX", filter_width=1.5,
+                              recycle_every=1000),
+}
+"""Named render presets; a data catalog names one (``render: demo``) or gives a mapping (optionally with a
+``preset`` key whose values the other keys override)."""
+
+
+def render_config(value: str | Mapping[str, Any] | RenderConfig | None, path: str = "render") -> RenderConfig:
+    """A :class:`RenderConfig` from a preset name, a mapping (strict, via ``config_utils.from_mapping``; a
+    ``preset`` key picks the base the other keys override), an existing config, or None (the ``demo`` preset)."""
+    if value is None:
+        return RENDER_PRESETS["demo"]
+    if isinstance(value, RenderConfig):
+        return value
+    if isinstance(value, str):
+        if value not in RENDER_PRESETS:
+            raise ConfigError(f"{path}: unknown render preset {value!r}; presets: {sorted(RENDER_PRESETS)}")
+        return RENDER_PRESETS[value]
+    if not isinstance(value, Mapping):
+        raise ConfigError(f"{path}: expected a preset name or a mapping, got {type(value).__name__} {value!r}")
+    data = dict(value)
+    base_name = data.pop("preset", None)
+    if base_name is None:
+        return from_mapping(RenderConfig, data, path)
+    base = render_config(base_name, f"{path}.preset")
+    overrides = from_mapping(RenderConfig, data, path)  # validates keys and types
+    return replace(base, **{k: getattr(overrides, k) for k in data})
+
+
+@dataclass(frozen=True)
+class SceneAssets:
+    """The files a worker renders one category with.
+
+    Attributes:
+        asset: the rigged canonical mesh (GLB/glTF; FBX/.blend are converted first by the runner).
+        textures: one entry per ``texture_id``: an image file path, or ``"toy:<coat>"`` for a procedural toy coat
+            (:data:`bat3r_core.toy.TOY_COATS`).
+        envmaps: one HDR/EXR (or LDR) file per ``envmap_id``; ``envmap_id = -1`` uses a procedural sky.
+    """
+
+    asset: str
+    textures: tuple[str, ...] = ("toy:bay", "toy:chestnut", "toy:grey", "toy:pinto")
+    envmaps: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.textures:
+            raise ValueError("SceneAssets.textures must list at least one texture")

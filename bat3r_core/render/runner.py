@@ -1,0 +1,355 @@
+"""Render a shard of jobs in worker subprocesses and assemble the training shard (no bpy here).
+
+:func:`render_shard` spawns ``python -m bat3r_core.render.worker`` (never forks a process that imported bpy),
+streams the shard's jobs to it on stdin, starts a fresh process every ``RenderConfig.recycle_every`` images, kills
+a process that makes no progress for ``timeout_s``, and when a process dies retries the jobs it had not finished
+(at most ``RenderConfig.retries`` restarts per shard; a job that was being rendered during two crashes is recorded
+as ``failed`` and skipped). It then labels every rendered image exactly: the same job's θ and global similarity
+skin the rig with :mod:`bat3r_core.skinning` and :mod:`bat3r_core.pointmaps` ray-casts that mesh through the
+job's camera. The shard is written with :func:`bat3r_core.shards.write_shard` in the "Training samples" format of
+docs/CONVENTIONS.md.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from bat3r_core.config_utils import to_mapping
+from bat3r_core.render.config import RenderConfig, SceneAssets, render_config
+from bat3r_core.render.jobs import RenderJob, job_to_dict, read_jobs
+from bat3r_core.rig import Rig
+
+__all__ = ["ShardResult", "render_shard", "render_jobs", "render_command", "convert_to_glb", "label_job",
+           "mask_iou"]
+
+_PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass(frozen=True)
+class ShardResult:
+    """What :func:`render_shard` wrote.
+
+    Attributes:
+        parquet, npz: the shard's files. num_ok / num_failed: rows with status ok / not ok.
+        processes: worker processes started (recycling and retries included). crashes: processes that died
+        or were killed before finishing their jobs. seconds: wall time.
+    """
+
+    parquet: Path
+    npz: Path
+    num_ok: int
+    num_failed: int
+    processes: int
+    crashes: int
+    seconds: float
+
+
+def convert_to_glb(asset: str | os.PathLike, out_dir: str | os.PathLike) -> Path:
+    """``asset`` itself if it is glTF/GLB, else its conversion (FBX/.blend, through Blender) in ``out_dir``."""
+    asset = Path(asset)
+    if not asset.is_file():
+        raise FileNotFoundError(f"asset {asset} does not exist")
+    if asset.suffix.lower() in (".glb", ".gltf"):
+        return asset
+    if asset.suffix.lower() not in (".fbx", ".blend"):
+        raise ValueError(f"asset must be .glb, .gltf, .fbx or .blend, got {asset.name}")
+    out = Path(out_dir) / f"{asset.stem}.converted.glb"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    proc = subprocess.run([sys.executable, "-m", "bat3r_core.render.blender_convert", str(asset), str(out)],
+                          capture_output=True, text=True, env=_worker_env(None), timeout=600)
+    if proc.returncode != 0 or not out.is_file():
+        raise RuntimeError(f"converting {asset} to GLB failed (exit {proc.returncode}): "
+                           f"{(proc.stderr or proc.stdout)[-2000:]}")
+    return out
+
+
+def _worker_env(gpu_index: int | None) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(_PROJECT_ROOT)] + [p for p in [env.get("PYTHONPATH")] if p])
+    if gpu_index is not None:
+        env["CUDA_VISIBLE_DEVICES"] = str(gpu_index)
+    return env
+
+
+def _read_results(path: Path) -> dict[int, dict]:
+    out: dict[int, dict] = {}
+    if path.is_file():
+        for line in path.read_text(encoding="utf-8").splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:  # a line cut short by a crash
+                continue
+            out[int(rec["index"])] = rec
+    return out
+
+
+def _tail(path: Path, n: int = 1500) -> str:
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return ""
+    return text[-n:].strip()
+
+
+def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir: Path, log_path: Path,
+                 config: RenderConfig, env: dict, on_worker_start: Callable[[subprocess.Popen], None] | None
+                 ) -> tuple[int, bool]:
+    """One worker process over ``rows``; returns (exit code, killed for lack of progress)."""
+    cmd = [sys.executable, "-m", "bat3r_core.render.worker", "--spec", str(spec_path), "--results",
+           str(results_path), "--out", str(workdir)]
+    with open(log_path, "a", encoding="utf-8") as log:
+        proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                text=True, cwd=str(_PROJECT_ROOT))
+
+        def feed() -> None:
+            try:
+                for row in rows:
+                    proc.stdin.write(json.dumps(row) + "\n")
+                proc.stdin.close()
+            except (BrokenPipeError, OSError, ValueError):
+                pass  # the process died; the runner notices
+
+        feeder = threading.Thread(target=feed, daemon=True)
+        feeder.start()
+        if on_worker_start is not None:
+            on_worker_start(proc)
+        wanted = {r["index"] for r in rows}
+        done = len(wanted & set(_read_results(results_path)))
+        last_progress = time.monotonic()
+        started = False
+        killed = False
+        while proc.poll() is None:
+            time.sleep(0.05)
+            now_done = len(wanted & set(_read_results(results_path)))
+            if now_done != done:
+                done, last_progress, started = now_done, time.monotonic(), True
+            limit = config.timeout_s + (0.0 if started else config.startup_timeout_s)
+            if time.monotonic() - last_progress > limit:
+                proc.kill()
+                killed = True
+                proc.wait()
+        feeder.join(timeout=5)
+        return proc.returncode, killed
+
+
+def _render_images(jobs: Sequence[RenderJob], assets: SceneAssets, config: RenderConfig, workdir: Path,
+                   debug_vertices: bool, gpu_index: int | None,
+                   on_worker_start: Callable[[subprocess.Popen], None] | None) -> tuple[dict[int, dict], int, int]:
+    """Render all jobs into ``workdir``; returns (results by job index, processes started, crashes)."""
+    spec_path = workdir / "spec.json"
+    spec_path.write_text(json.dumps({"asset": str(assets.asset), "textures": list(assets.textures),
+                                     "envmaps": list(assets.envmaps), "config": to_mapping(config),
+                                     "debug_vertices": bool(debug_vertices)}))
+    results_path = workdir / "results.jsonl"
+    log_path = workdir / "worker.log"
+    env = _worker_env(gpu_index)
+    rows = []
+    for i, job in enumerate(jobs):
+        row = job_to_dict(job)
+        row["index"] = i
+        rows.append(row)
+    pending = list(range(len(jobs)))
+    failed: dict[int, dict] = {}
+    blame: dict[int, int] = {}
+    processes = crashes = 0
+    while pending:
+        batch = pending[:config.recycle_every]
+        processes += 1
+        rc, killed = _run_process([rows[i] for i in batch], spec_path, results_path, workdir, log_path, config,
+                                  env, on_worker_start)
+        results = _read_results(results_path)
+        pending = [i for i in pending if i not in results and i not in failed]
+        unfinished = [i for i in batch if i not in results and i not in failed]
+        if not unfinished:
+            continue
+        crashes += 1
+        why = ("killed after no progress for its timeout" if killed else f"exited with code {rc}")
+        suspect = unfinished[0]
+        blame[suspect] = blame.get(suspect, 0) + 1
+        if blame[suspect] >= 2:
+            failed[suspect] = {"status": "failed", "reason": f"the render worker crashed twice on this job "
+                                                             f"({why}); log: {_tail(log_path, 300)}"}
+            pending.remove(suspect)
+        if crashes > config.retries:
+            for i in pending:
+                failed[i] = {"status": "failed", "reason": f"render worker {why}; gave up after {crashes} crashes "
+                                                           f"({config.retries} retries); log: {_tail(log_path)}"}
+            pending = []
+    results = _read_results(results_path)
+    results.update(failed)
+    return results, processes, crashes
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two (H, W) bool masks (1.0 when both are empty)."""
+    a, b = np.asarray(a, bool), np.asarray(b, bool)
+    union = np.logical_or(a, b).sum()
+    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
+
+
+def label_job(rig: Rig, job: RenderJob, num_layers: int = 4):
+    """Exact labels of a job: the rig skinned by ``bat3r_core.skinning`` with the job's θ and global similarity,
+    ray-cast through its camera.
+
+    Returns:
+        (posed_vertices (V, 3) float64 world frame metres, :class:`bat3r_core.pointmaps.DualPointMaps`).
+    """
+    import torch
+
+    from bat3r_core.pointmaps import dual_point_maps
+    from bat3r_core.skinning import skin
+
+    tensors = rig.tensors(dtype=torch.float64)
+    out = skin(tensors, torch.as_tensor(np.asarray(job.excess_rotations, dtype=np.float64))[None],
+               global_scale=torch.tensor([float(job.global_scale)], dtype=torch.float64),
+               global_rotation=torch.as_tensor(np.asarray(job.global_rotation, dtype=np.float64))[None],
+               global_translation=torch.as_tensor(np.asarray(job.global_translation, dtype=np.float64))[None])
+    posed = out.vertices[0].numpy()
+    maps = dual_point_maps(posed, rig.rest_vertices, rig.faces, job.camera, num_layers=num_layers)
+    return posed, maps
+
+
+def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | os.PathLike, shard_index: int = 0,
+                 config: RenderConfig | str | None = None, rig: Rig | None = None, debug_vertices: bool = False,
+                 gpu_index: int | None = None, min_mask_iou: float = 0.8,
+                 on_worker_start: Callable[[subprocess.Popen], None] | None = None) -> ShardResult:
+    """Render ``jobs`` and write training shard ``part-<shard_index>`` into ``out_dir``.
+
+    Args:
+        jobs: render jobs (one image each); all must share one image size.
+        assets: the category's rigged asset (GLB; FBX/.blend are converted), textures and environment maps.
+        config: a :class:`RenderConfig` or preset name (default ``demo``).
+        rig: the rig of ``assets.asset`` (loaded when None).
+        debug_vertices: also store the depsgraph-evaluated posed vertices Blender rendered
+            (``blender_vertices (N, V, 3) float32``, bat3r world frame) for checking against skinning.
+        gpu_index: pins the worker to this GPU (``CUDA_VISIBLE_DEVICES``) when the device is a GPU.
+        min_mask_iou: rows whose Blender mask and ray-cast layer-0 occupancy agree less than this (IoU, for masks
+            of at least 50 pixels) get status ``mask_mismatch``.
+        on_worker_start: called with each worker ``Popen`` right after it starts (monitoring, fault injection).
+
+    Returns:
+        :class:`ShardResult`. The npz holds ``rgb (N, H, W, 3) uint8``, ``mask (N, H, W) bool``,
+        ``P``/``Q (N, H, W, K, 3) float16`` (P relative to the object depth, see :mod:`bat3r_core.pointmaps`),
+        ``occupancy (N, H, W, K) bool``, ``object_depth (N,) float32``, ``K_intrinsics (N, 3, 3) float32``; rows
+        that failed hold zeros. Parquet rows: the job's columns plus ``status``, ``reason``, ``render_seconds``,
+        ``mask_iou``.
+    """
+    from bat3r_core.pointmaps import encode_float16
+    from bat3r_core.rig_io import load_rig
+    from bat3r_core.shards import shard_name, write_shard
+
+    t0 = time.perf_counter()
+    config = render_config(config)
+    jobs = list(jobs)
+    if not jobs:
+        raise ValueError("jobs must not be empty")
+    bad = [type(j).__name__ for j in jobs if not isinstance(j, RenderJob)]
+    if bad:
+        raise TypeError(f"jobs must be RenderJob objects, got {bad[0]}")
+    sizes = {(int(j.camera_numbers().get("width", 0)), int(j.camera_numbers().get("height", 0))) for j in jobs}
+    if len(sizes) != 1:
+        raise ValueError(f"all jobs of a shard must share one image size, got {sorted(sizes)}")
+    width, height = sizes.pop()
+    if width <= 0 or height <= 0:
+        raise ValueError(f"jobs must have a positive image size, got {width}x{height}")
+    out_dir = Path(out_dir)
+    workdir = out_dir / f".work-{shard_name(shard_index)}"
+    if workdir.exists():
+        import shutil
+
+        shutil.rmtree(workdir)
+    workdir.mkdir(parents=True)
+    glb = convert_to_glb(assets.asset, workdir)
+    assets = SceneAssets(asset=str(glb), textures=assets.textures, envmaps=assets.envmaps)
+    rig = rig if rig is not None else load_rig(glb)
+    results, processes, crashes = _render_images(jobs, assets, config, workdir, debug_vertices, gpu_index,
+                                                 on_worker_start)
+    n, k = len(jobs), config.num_layers
+    arrays = {
+        "rgb": np.zeros((n, height, width, 3), np.uint8), "mask": np.zeros((n, height, width), bool),
+        "P": np.zeros((n, height, width, k, 3), np.float16), "Q": np.zeros((n, height, width, k, 3), np.float16),
+        "occupancy": np.zeros((n, height, width, k), bool), "object_depth": np.zeros(n, np.float32),
+        "K_intrinsics": np.zeros((n, 3, 3), np.float32),
+    }
+    if debug_vertices:
+        arrays["blender_vertices"] = np.zeros((n, rig.num_vertices, 3), np.float32)
+    rows = []
+    for i, job in enumerate(jobs):
+        rec = results.get(i, {"status": "failed", "reason": "no result from the render worker"})
+        status, reason, iou = rec["status"], rec["reason"], float("nan")
+        if status == "ok":
+            try:
+                with np.load(workdir / f"job-{i:06d}.npz", allow_pickle=False) as z:
+                    arrays["rgb"][i] = z["rgb"]
+                    arrays["mask"][i] = z["mask"]
+                    if debug_vertices:
+                        arrays["blender_vertices"][i] = z["posed_vertices"]
+                _, maps = label_job(rig, job, k)
+                iou = mask_iou(arrays["mask"][i], maps.mask)
+                if maps.status != "ok":
+                    status, reason = maps.status, maps.reason
+                elif iou < min_mask_iou and arrays["mask"][i].sum() >= 50:
+                    status, reason = "mask_mismatch", (f"Blender mask and ray-cast occupancy disagree "
+                                                       f"(IoU {iou:.3f} < {min_mask_iou})")
+                p16, q16 = encode_float16(maps.P, maps.Q, maps.occupancy, np.float64(maps.object_depth))
+                arrays["P"][i], arrays["Q"][i] = p16, q16
+                arrays["occupancy"][i] = maps.occupancy
+                arrays["object_depth"][i] = maps.object_depth
+                arrays["K_intrinsics"][i] = job.camera.K
+            except (OSError, ValueError, KeyError) as e:
+                status, reason = "failed", f"labelling failed: {type(e).__name__}: {e}"
+        row = job_to_dict(job)
+        row.update(status=status, reason=reason, render_seconds=float(rec.get("seconds", 0.0)), mask_iou=iou)
+        rows.append(row)
+    paths = write_shard(out_dir, shard_index, rows, arrays)
+    import shutil
+
+    shutil.rmtree(workdir, ignore_errors=True)
+    n_ok = sum(r["status"] == "ok" for r in rows)
+    return ShardResult(parquet=paths.parquet, npz=paths.npz, num_ok=n_ok, num_failed=n - n_ok, processes=processes,
+                       crashes=crashes, seconds=time.perf_counter() - t0)
+
+
+def render_jobs(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | os.PathLike,
+                config: RenderConfig | str | None = None, shard_size: int = 256, start_index: int = 0,
+                skip_complete: bool = True, **kwargs) -> list[ShardResult | None]:
+    """Split ``jobs`` into shards of ``shard_size`` and render each with :func:`render_shard` (sequentially).
+
+    Shards already complete in ``out_dir`` are skipped when ``skip_complete`` (their entry is None).
+    """
+    from bat3r_core.shards import shard_paths
+
+    if shard_size < 1:
+        raise ValueError(f"shard_size must be >= 1, got {shard_size}")
+    jobs = list(jobs)
+    out = []
+    for s, start in enumerate(range(0, len(jobs), shard_size)):
+        index = start_index + s
+        if skip_complete and shard_paths(out_dir, index).complete:
+            out.append(None)
+            continue
+        out.append(render_shard(jobs[start:start + shard_size], assets, out_dir, index, config, **kwargs))
+    return out
+
+
+def render_command(jobs: str | os.PathLike, asset: str | os.PathLike, out: str | os.PathLike,
+                   config: RenderConfig | str | None = "demo", textures: Sequence[str] | None = None,
+                   envmaps: Sequence[str] = (), shard_index: int = 0, debug_vertices: bool = False) -> ShardResult:
+    """``bat3r render --jobs JOBS.parquet --asset ASSET --out DIR``: render one job file as one shard by hand.
+
+    ``textures`` default to the toy's procedural coats. Returns the :class:`ShardResult` (its files are
+    ``DIR/part-<shard_index>.parquet/.npz``).
+    """
+    job_list = read_jobs(jobs)
+    assets = SceneAssets(asset=str(asset), textures=tuple(textures) if textures else SceneAssets("").textures,
+                         envmaps=tuple(envmaps))
+    return render_shard(job_list, assets, out, shard_index, config, debug_vertices=debug_vertices)

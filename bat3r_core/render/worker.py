@@ -1,0 +1,465 @@
+"""The Blender render worker: the only bat3r module that imports ``bpy``.
+
+Run in its own process, one per shard (or per ``recycle_every`` images), by :mod:`bat3r_core.render.runner`::
+
+    python -m bat3r_core.render.worker --spec SPEC.json --results RESULTS.jsonl --out WORKDIR < JOBS.jsonl
+
+``SPEC.json`` holds the :class:`~bat3r_core.render.config.SceneAssets` (``asset``, ``textures``, ``envmaps``), the
+:class:`~bat3r_core.render.config.RenderConfig` (``config``) and ``debug_vertices``. Jobs arrive on stdin, one JSON
+object per line (the columns of :mod:`bat3r_core.render.jobs` plus ``index``). For each job the worker writes
+``WORKDIR/job-<index>.npz`` (``rgb (H, W, 3) uint8``, ``mask (H, W) bool`` from the Object Index pass, and with
+``debug_vertices`` the depsgraph-evaluated ``posed_vertices (V, 3)`` in bat3r's world frame and rig vertex order),
+then appends one JSON line ``{"index", "sample_id", "status", "reason", "seconds"}`` to ``RESULTS.jsonl``. A job
+that cannot render (bad texture or environment file, NaN pose or camera) gets a non-``ok`` status and the worker
+goes on with the next one.
+
+Frames. Blender's glTF importer turns glTF's Y-up world into Blender's Z-up world with
+``W = GLTF_TO_BLENDER_WORLD`` (``(x, y, z) -> (x, -z, y)``) and may re-orient bones. bat3r's θ_j rotates joint
+``j`` in its rest frame ``G_rest[j]`` (canonical frame). With ``C`` the map canonical frame -> armature space
+(``A0^-1 W``, ``A0`` the armature object's import matrix) and ``B_j`` the bone's rest matrix in armature space,
+``X_j = G_rest[j]^-1 C^-1 B_j`` relates the two rest frames and the pose bone's local matrix is the conjugate
+``basis_j = X_j^-1 [R(θ_j) | 0] X_j``; with Blender's default inheritance this reproduces
+``G_j G_rest[j]^-1`` of :mod:`bat3r_core.skinning` for every bone (derivation in docs/rendering.md). The global
+similarity ``S`` goes on the armature object: ``A = W S W^-1 A0``. Cameras come from
+:func:`bat3r_core.cameras.to_blender` with ``world_rotation = W``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+try:
+    import bpy
+    from mathutils import Matrix
+except ImportError as e:  # pragma: no cover - depends on the environment
+    raise ImportError("the render worker needs Blender's Python module: pip install bpy==5.0.1 "
+                      "(Python 3.11, numpy<2)") from e
+
+from bat3r_core.cameras import GLTF_TO_BLENDER_WORLD, PinholeCamera, to_blender
+from bat3r_core.render.config import RenderConfig, SceneAssets
+from bat3r_core.render.jobs import job_from_dict
+
+MESH_PASS_INDEX = 1
+_W4 = np.eye(4)
+_W4[:3, :3] = GLTF_TO_BLENDER_WORLD
+
+
+def _log(msg: str) -> None:
+    print(f"[bat3r-worker {os.getpid()}] {msg}", file=sys.stderr, flush=True)
+
+
+def _rotvec_matrix(v: np.ndarray) -> np.ndarray:
+    """Rodrigues: (3,) axis-angle radians -> (3, 3)."""
+    a = float(np.linalg.norm(v))
+    if a < 1e-12:
+        return np.eye(3)
+    k = v / a
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(a) * kx + (1 - math.cos(a)) * kx @ kx
+
+
+class JobError(Exception):
+    """A job that cannot be rendered: ``status`` is the short code recorded in its row."""
+
+    def __init__(self, status: str, reason: str):
+        super().__init__(reason)
+        self.status = status
+        self.reason = reason
+
+
+class BlenderRenderer:
+    """A Blender scene with one rigged asset, set up once and re-posed, re-textured and re-lit per job."""
+
+    def __init__(self, assets: SceneAssets, config: RenderConfig, workdir: Path, debug_vertices: bool = False):
+        from bat3r_core.rig_io import load_rig
+
+        self.assets = assets
+        self.config = config
+        self.workdir = Path(workdir)
+        self.debug_vertices = debug_vertices
+        self.rig = load_rig(assets.asset)
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        self.scene = bpy.context.scene
+        self._import_asset()
+        self._setup_render()
+        self._setup_material()
+        self._setup_worlds()
+        self._setup_compositor()
+        self._images: dict[int, object] = {}
+        self._envmaps: dict[int, object] = {}
+
+    # ------------------------------------------------------------------------------------------------ setup
+    def _import_asset(self) -> None:
+        bpy.ops.import_scene.gltf(filepath=str(self.assets.asset))
+        arms = [o for o in self.scene.objects if o.type == "ARMATURE"]
+        skinned = [o for o in self.scene.objects if o.type == "MESH"
+                   and any(m.type == "ARMATURE" for m in o.modifiers)]
+        if len(arms) != 1 or not skinned:
+            raise RuntimeError(f"{self.assets.asset}: expected one armature and a skinned mesh after import, got "
+                               f"{len(arms)} armatures and {len(skinned)} skinned meshes")
+        self.armature = arms[0]
+        self.mesh = max(skinned, key=lambda o: len(o.data.vertices))
+        for o in self.scene.objects:  # bone display shapes and any other helper geometry stay out of the image
+            if o is not self.mesh and o is not self.armature:
+                o.hide_render = True
+        self.mesh.pass_index = MESH_PASS_INDEX
+        self.a0 = np.array(self.armature.matrix_world)
+        c = np.linalg.inv(self.a0) @ _W4  # canonical (glTF) frame -> armature space
+        c_inv = np.linalg.inv(c)
+        bones = self.armature.data.bones
+        self.conj: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        for j, name in enumerate(self.rig.joint_names):
+            if name not in bones:
+                raise RuntimeError(f"{self.assets.asset}: joint '{name}' has no bone after import; bones: "
+                                   f"{[b.name for b in bones][:10]}...")
+            x = np.linalg.inv(self.rig.rest_transforms[j]) @ c_inv @ np.array(bones[name].matrix_local)
+            self.conj[name] = (x, np.linalg.inv(x))
+        for pb in self.armature.pose.bones:
+            pb.rotation_mode = "QUATERNION"
+            pb.matrix_basis = Matrix.Identity(4)
+        # imported vertex -> rig vertex correspondence (the importer may split or reorder vertices)
+        from scipy.spatial import cKDTree
+
+        local = np.empty(len(self.mesh.data.vertices) * 3)
+        self.mesh.data.vertices.foreach_get("co", local)
+        world = self._to_bat3r(local.reshape(-1, 3), np.array(self.mesh.matrix_world))
+        dist, self.vertex_map = cKDTree(world).query(self.rig.rest_vertices)
+        self.vertex_map_error = float(dist.max())
+
+    @staticmethod
+    def _to_bat3r(local: np.ndarray, matrix_world: np.ndarray) -> np.ndarray:
+        """(V, 3) object-local coordinates -> bat3r world frame (undo the Y-up -> Z-up change)."""
+        m = np.linalg.inv(_W4) @ matrix_world
+        return local @ m[:3, :3].T + m[:3, 3]
+
+    def _setup_render(self) -> None:
+        cfg, s = self.config, self.scene
+        s.render.engine = "CYCLES"
+        s.render.use_persistent_data = True
+        s.render.film_transparent = False
+        s.render.resolution_percentage = 100
+        s.render.image_settings.file_format = "PNG"
+        s.cycles.samples = cfg.samples
+        s.cycles.use_denoising = cfg.denoise
+        s.cycles.use_adaptive_sampling = False
+        s.cycles.filter_width = cfg.filter_width
+        s.cycles.max_bounces = cfg.max_bounces
+        s.cycles.diffuse_bounces = min(cfg.max_bounces, 2)
+        s.cycles.glossy_bounces = min(cfg.max_bounces, 2)
+        s.cycles.transmission_bounces = 0
+        s.cycles.volume_bounces = 0
+        s.cycles.transparent_max_bounces = 2
+        s.view_settings.view_transform = cfg.view_transform
+        s.view_settings.exposure = cfg.exposure
+        if cfg.threads > 0:
+            s.render.threads_mode = "FIXED"
+            s.render.threads = cfg.threads
+        s.cycles.device = "CPU"
+        if cfg.device != "CPU":
+            self._enable_gpu(cfg.device)
+        s.view_layers[0].use_pass_object_index = True
+        cam_data = bpy.data.cameras.new("bat3r_camera")
+        cam_data.sensor_fit = "HORIZONTAL"
+        cam_data.clip_start = 0.01
+        cam_data.clip_end = 10000.0
+        self.camera = bpy.data.objects.new("bat3r_camera", cam_data)
+        s.collection.objects.link(self.camera)
+        s.camera = self.camera
+
+    def _enable_gpu(self, backend: str) -> None:
+        prefs = bpy.context.preferences.addons["cycles"].preferences
+        prefs.compute_device_type = backend
+        prefs.get_devices()
+        gpus = [d for d in prefs.devices if d.type == backend]
+        if not gpus:
+            raise RuntimeError(f"RenderConfig.device={backend} but Blender sees no {backend} device "
+                               f"(CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')!r})")
+        for d in prefs.devices:
+            d.use = False
+        gpus[0].use = True  # the first visible device: the runner pins one GPU per process
+        self.scene.cycles.device = "GPU"
+        _log(f"rendering on {backend} device {gpus[0].name}")
+
+    def _setup_material(self) -> None:
+        mat = bpy.data.materials.new("bat3r_coat")
+        nt = mat.node_tree
+        bsdf = next(n for n in nt.nodes if n.type == "BSDF_PRINCIPLED")
+        bsdf.inputs["Roughness"].default_value = 0.75
+        self.tex_node = nt.nodes.new("ShaderNodeTexImage")
+        self.tex_node.interpolation = "Linear"
+        if not self.mesh.data.uv_layers:  # no UVs: project the texture with the generated coordinates
+            coords = nt.nodes.new("ShaderNodeTexCoord")
+            nt.links.new(coords.outputs["Generated"], self.tex_node.inputs["Vector"])
+        nt.links.new(self.tex_node.outputs["Color"], bsdf.inputs["Base Color"])
+        self.mesh.data.materials.clear()
+        self.mesh.data.materials.append(mat)
+        for poly in self.mesh.data.polygons:
+            poly.use_smooth = True
+
+    def _setup_worlds(self) -> None:
+        # procedural sky: an analytic (Hosek-Wilkie) sky above the horizon, a seeded grass-and-earth ground below
+        # it, and a sun lamp; all three are cheap to change per image (a physical multiple-scattering sky would
+        # recompute its table and the world's importance map every image, ~1 s)
+        sky = bpy.data.worlds.new("bat3r_sky")
+        sky.cycles.sample_map_resolution = 256
+        nt = sky.node_tree
+        nt.nodes.clear()
+        coord = nt.nodes.new("ShaderNodeTexCoord")
+        self.sky_tex = nt.nodes.new("ShaderNodeTexSky")
+        self.sky_tex.sky_type = "HOSEK_WILKIE"
+        sep = nt.nodes.new("ShaderNodeSeparateXYZ")
+        noise = nt.nodes.new("ShaderNodeTexNoise")
+        noise.inputs["Scale"].default_value = 6.0
+        noise.inputs["Detail"].default_value = 8.0
+        self.ground_ramp = nt.nodes.new("ShaderNodeValToRGB")
+        horizon = nt.nodes.new("ShaderNodeMapRange")  # 1 above the horizon, 0 below, soft blend
+        horizon.inputs["From Min"].default_value = -0.02
+        horizon.inputs["From Max"].default_value = 0.02
+        mix = nt.nodes.new("ShaderNodeMix")
+        mix.data_type = "RGBA"
+        self.sky_bg = nt.nodes.new("ShaderNodeBackground")
+        out = nt.nodes.new("ShaderNodeOutputWorld")
+        nt.links.new(coord.outputs["Generated"], sep.inputs["Vector"])
+        nt.links.new(coord.outputs["Generated"], noise.inputs["Vector"])
+        nt.links.new(noise.outputs["Fac"], self.ground_ramp.inputs["Fac"])
+        nt.links.new(sep.outputs["Z"], horizon.inputs["Value"])
+        nt.links.new(horizon.outputs["Result"], mix.inputs["Factor"])
+        nt.links.new(self.ground_ramp.outputs["Color"], mix.inputs["A"])
+        nt.links.new(self.sky_tex.outputs["Color"], mix.inputs["B"])
+        nt.links.new(mix.outputs["Result"], self.sky_bg.inputs["Color"])
+        nt.links.new(self.sky_bg.outputs["Background"], out.inputs["Surface"])
+        self.sky_world = sky
+        sun_data = bpy.data.lights.new("bat3r_sun", "SUN")
+        sun_data.angle = math.radians(2.0)
+        self.sun = bpy.data.objects.new("bat3r_sun", sun_data)
+        self.scene.collection.objects.link(self.sun)
+        # environment map world: an equirectangular image, rotated about the up axis
+        env = bpy.data.worlds.new("bat3r_envmap")
+        nt = env.node_tree
+        nt.nodes.clear()
+        coord = nt.nodes.new("ShaderNodeTexCoord")
+        self.env_mapping = nt.nodes.new("ShaderNodeMapping")
+        self.env_tex = nt.nodes.new("ShaderNodeTexEnvironment")
+        bg = nt.nodes.new("ShaderNodeBackground")
+        out = nt.nodes.new("ShaderNodeOutputWorld")
+        nt.links.new(coord.outputs["Generated"], self.env_mapping.inputs["Vector"])
+        nt.links.new(self.env_mapping.outputs["Vector"], self.env_tex.inputs["Vector"])
+        nt.links.new(self.env_tex.outputs["Color"], bg.inputs["Color"])
+        nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+        self.env_world = env
+        self.scene.world = sky
+
+    def _setup_compositor(self) -> None:
+        tree = bpy.data.node_groups.new("bat3r_compositor", "CompositorNodeTree")
+        self.scene.compositing_node_group = tree
+        rl = tree.nodes.new("CompositorNodeRLayers")
+        idmask = tree.nodes.new("CompositorNodeIDMask")
+        idmask.inputs["Index"].default_value = MESH_PASS_INDEX
+        idmask.inputs["Anti-Alias"].default_value = False
+        self.rgb_out = tree.nodes.new("CompositorNodeOutputFile")
+        self.rgb_out.format.media_type = "IMAGE"  # bpy 5.0: the media type comes before the file format
+        self.rgb_out.format.file_format = "PNG"
+        self.rgb_out.format.color_mode = "RGB"
+        self.rgb_out.save_as_render = True
+        self.rgb_out.file_output_items.new("RGBA", "rgb")
+        self.mask_out = tree.nodes.new("CompositorNodeOutputFile")
+        self.mask_out.format.media_type = "IMAGE"
+        self.mask_out.format.file_format = "PNG"
+        self.mask_out.format.color_mode = "BW"
+        self.mask_out.save_as_render = False
+        self.mask_out.file_output_items.new("FLOAT", "mask")
+        tree.links.new(rl.outputs["Image"], self.rgb_out.inputs[0])
+        tree.links.new(rl.outputs["Object Index"], idmask.inputs["ID value"])
+        tree.links.new(idmask.outputs[0], self.mask_out.inputs[0])
+        for node in (self.rgb_out, self.mask_out):
+            node.directory = str(self.workdir / "_frame")
+            node.file_name = ""
+
+    # ------------------------------------------------------------------------------------------------ per job
+    def _texture(self, texture_id: int):
+        if texture_id in self._images:
+            return self._images[texture_id]
+        if texture_id >= len(self.assets.textures):
+            raise JobError("bad_texture", f"texture_id {texture_id} is out of range: the category has "
+                                          f"{len(self.assets.textures)} textures")
+        entry = self.assets.textures[texture_id]
+        if entry.startswith("toy:"):
+            from bat3r_core.toy import toy_coat_texture
+
+            coat = toy_coat_texture(entry[4:], size=512, seed=0)
+            img = bpy.data.images.new(f"coat_{texture_id}", coat.shape[1], coat.shape[0])
+            rgba = np.ones((coat.shape[0], coat.shape[1], 4), dtype=np.float32)
+            rgba[..., :3] = coat[::-1] / 255.0  # Blender stores rows bottom-up
+            img.pixels.foreach_set(rgba.ravel())
+            img.pack()
+        else:
+            img = self._load_image(entry, "bad_texture", "texture")
+        self._images[texture_id] = img
+        return img
+
+    @staticmethod
+    def _load_image(path: str, status: str, what: str):
+        if not Path(path).is_file():
+            raise JobError(status, f"{what} file {path} does not exist")
+        try:
+            img = bpy.data.images.load(str(path), check_existing=True)
+            ok = img.size[0] > 0 and img.size[1] > 0 and len(img.pixels) > 0
+        except RuntimeError as e:
+            raise JobError(status, f"{what} file {path} cannot be read: {e}") from None
+        if not ok:
+            bpy.data.images.remove(img)
+            raise JobError(status, f"{what} file {path} cannot be read (not a valid image)")
+        return img
+
+    def _set_world(self, envmap_id: int, rotation: float, seed: int) -> None:
+        if envmap_id < 0:
+            rng = np.random.default_rng([seed, 1])
+            elevation = math.radians(rng.uniform(15.0, 65.0))
+            azimuth = rotation + rng.uniform(0.0, 2 * math.pi)
+            sun_dir = (math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
+                       math.sin(elevation))
+            self.sky_tex.sun_direction = sun_dir
+            self.sky_tex.turbidity = float(rng.uniform(2.0, 6.0))
+            self.sky_tex.ground_albedo = 0.3
+            self.sky_bg.inputs["Strength"].default_value = float(rng.uniform(0.8, 1.3))
+            self.sun.data.energy = float(rng.uniform(2.5, 4.5))
+            self.sun.rotation_euler = (0.0, math.pi / 2 - elevation, azimuth)  # the lamp shines along its -z
+            self.sun.hide_render = False
+            gain = rng.uniform(0.9, 1.4)  # ground radiance ~ albedo x irradiance / pi
+            grass = gain * np.array([rng.uniform(0.06, 0.12), rng.uniform(0.12, 0.22), rng.uniform(0.02, 0.06)])
+            earth = gain * np.array([rng.uniform(0.16, 0.26), rng.uniform(0.12, 0.18), rng.uniform(0.07, 0.11)])
+            ramp = self.ground_ramp.color_ramp.elements
+            ramp[0].color = (*earth, 1.0)
+            ramp[1].color = (*grass, 1.0)
+            ramp[0].position = float(rng.uniform(0.3, 0.45))
+            ramp[1].position = float(rng.uniform(0.5, 0.7))
+            self.scene.world = self.sky_world
+            return
+        self.sun.hide_render = True
+        if envmap_id >= len(self.assets.envmaps):
+            raise JobError("bad_envmap", f"envmap_id {envmap_id} is out of range: the category has "
+                                         f"{len(self.assets.envmaps)} environment maps")
+        if envmap_id not in self._envmaps:
+            self._envmaps[envmap_id] = self._load_image(self.assets.envmaps[envmap_id], "bad_envmap",
+                                                        "environment map")
+        self.env_tex.image = self._envmaps[envmap_id]
+        self.env_mapping.inputs["Rotation"].default_value = (0.0, 0.0, rotation)
+        self.scene.world = self.env_world
+
+    def _pose(self, theta: np.ndarray, scale: float, rotation: np.ndarray, translation: np.ndarray) -> None:
+        bones = self.armature.pose.bones
+        for j, name in enumerate(self.rig.joint_names):
+            x, x_inv = self.conj[name]
+            r = np.eye(4)
+            r[:3, :3] = _rotvec_matrix(theta[j])
+            bones[name].matrix_basis = Matrix((x_inv @ r @ x).tolist())
+        s = np.eye(4)
+        s[:3, :3] = scale * rotation
+        s[:3, 3] = translation
+        self.armature.matrix_world = Matrix((_W4 @ s @ np.linalg.inv(_W4) @ self.a0).tolist())
+
+    def _set_camera(self, camera: PinholeCamera) -> None:
+        b = to_blender(camera, world_rotation=GLTF_TO_BLENDER_WORLD)
+        cam = self.camera.data
+        cam.lens = b["lens_mm"]
+        cam.sensor_width = b["sensor_width_mm"]
+        cam.shift_x = b["shift_x"]
+        cam.shift_y = b["shift_y"]
+        self.camera.matrix_world = Matrix(b["matrix_world"].tolist())
+        self.scene.render.resolution_x = b["resolution_x"]
+        self.scene.render.resolution_y = b["resolution_y"]
+
+    def evaluated_vertices(self) -> np.ndarray:
+        """(V, 3) depsgraph-evaluated (posed) vertices in bat3r's world frame, rig vertex order."""
+        dg = bpy.context.evaluated_depsgraph_get()
+        dg.update()
+        ob = self.mesh.evaluated_get(dg)
+        me = ob.to_mesh()
+        co = np.empty(len(me.vertices) * 3)
+        me.vertices.foreach_get("co", co)
+        mw = np.array(ob.matrix_world)
+        ob.to_mesh_clear()
+        return self._to_bat3r(co.reshape(-1, 3), mw)[self.vertex_map]
+
+    def render(self, row: dict) -> dict:
+        """Render one job row (dict of the job columns + ``index``); returns its result record."""
+        import cv2
+
+        t0 = time.perf_counter()
+        index = int(row["index"])
+        job = job_from_dict(row)
+        problems = job.problems(self.rig.num_joints)
+        if problems:
+            raise JobError("bad_job", "; ".join(problems))
+        img = self._texture(job.texture_id)
+        self._set_world(job.envmap_id, job.envmap_rotation, job.seed)
+        self.tex_node.image = img
+        self._pose(np.asarray(job.excess_rotations), job.global_scale, np.asarray(job.global_rotation),
+                   np.asarray(job.global_translation))
+        self._set_camera(job.camera)
+        self.scene.cycles.seed = int(job.seed) % (2 ** 31)
+        frame_dir = self.workdir / "_frame"
+        for p in frame_dir.glob("*.png"):
+            p.unlink()
+        bpy.ops.render.render(write_still=False)
+        rgb_files = sorted(frame_dir.glob("rgb*.png"))
+        mask_files = sorted(frame_dir.glob("mask*.png"))
+        if not rgb_files or not mask_files:
+            raise JobError("failed", f"Blender wrote no image (found {[p.name for p in frame_dir.iterdir()]})")
+        rgb = cv2.imread(str(rgb_files[0]), cv2.IMREAD_COLOR)[..., ::-1]
+        mask = cv2.imread(str(mask_files[0]), cv2.IMREAD_GRAYSCALE) > 127
+        arrays = {"rgb": np.ascontiguousarray(rgb), "mask": mask}
+        if self.debug_vertices:
+            arrays["posed_vertices"] = self.evaluated_vertices()
+        out = self.workdir / f"job-{index:06d}.npz"
+        tmp = self.workdir / f".job-{index:06d}.npz.tmp"
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, out)
+        return {"status": "ok", "reason": "", "seconds": time.perf_counter() - t0}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="bat3r Blender render worker (jobs as JSON lines on stdin)")
+    ap.add_argument("--spec", required=True, help="JSON with asset, textures, envmaps, config, debug_vertices")
+    ap.add_argument("--results", required=True, help="JSON-lines file the per-job results are appended to")
+    ap.add_argument("--out", required=True, help="folder for job-<index>.npz outputs")
+    args = ap.parse_args(argv)
+    from bat3r_core.config_utils import from_mapping
+
+    spec = json.loads(Path(args.spec).read_text())
+    assets = SceneAssets(asset=spec["asset"], textures=tuple(spec["textures"]), envmaps=tuple(spec["envmaps"]))
+    config = from_mapping(RenderConfig, spec["config"], "config")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    renderer = BlenderRenderer(assets, config, out, debug_vertices=bool(spec.get("debug_vertices", False)))
+    _log(f"scene ready in {time.perf_counter() - t0:.2f} s (vertex map error {renderer.vertex_map_error:.2e} m)")
+    with open(args.results, "a", encoding="utf-8") as results:
+        for line in sys.stdin:
+            if not line.strip():
+                continue
+            row = json.loads(line)
+            try:
+                rec = renderer.render(row)
+            except JobError as e:
+                rec = {"status": e.status, "reason": e.reason, "seconds": 0.0}
+            except Exception as e:  # noqa: BLE001 - any per-job failure is recorded, the shard goes on
+                _log(traceback.format_exc())
+                rec = {"status": "failed", "reason": f"{type(e).__name__}: {e}", "seconds": 0.0}
+            rec.update(index=int(row["index"]), sample_id=str(row.get("sample_id", "")))
+            results.write(json.dumps(rec) + "\n")
+            results.flush()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
