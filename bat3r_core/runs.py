@@ -1,0 +1,357 @@
+"""Run folders: their layout, manifest, code versions, shard records and the failed-shard policy. No Prefect.
+
+A run lives in ``<storage root>/<category>/<run name>/`` (``DESIGN.md``, "Storage contract")::
+
+    manifest.json            resolved config, code version, per-stage code versions (``write_manifest``)
+    metrics.parquet          one row per (iteration, split)  (bat3r_core.evaluation)
+    report.html              the run report                  (bat3r_core.report)
+    collection/ test/        run-level stage folders (shards of the image collection and the test split)
+    iter-00/<stage>/         one folder per stage of an iteration: part-NNNNN.parquet (+ .npz) shards
+    iter-01/<stage>/ ...
+    .prefect/results/        results of the orchestration's tasks (Prefect result storage; not needed to read a run)
+
+Stage folders of an iteration, in data-flow order: ``infer, fit, plan, render, features, train, evaluate``.
+Iteration 0 has no ``infer``/``fit``: its ``plan`` holds render jobs sampled around the rest-pose mesh.
+
+``stage_code_version`` hashes the source of the ``bat3r_core`` modules a stage's module reaches through its imports
+(statically, without importing them), so a cache keyed by it is invalidated exactly when that code changes.
+"""
+from __future__ import annotations
+
+import ast
+import hashlib
+import json
+import math
+import os
+import re
+import subprocess
+import tempfile
+import time
+import types
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import pyarrow.parquet as pq
+
+from bat3r_core import shards
+
+__all__ = ["ITERATION_STAGES", "RUN_STAGES", "RunLayout", "code_version", "stage_code_version", "write_manifest",
+           "read_manifest", "shard_record", "ShardFailure", "FailureSummary", "TooManyFailedShards",
+           "apply_failure_policy"]
+
+ITERATION_STAGES = ("infer", "fit", "plan", "render", "features", "train", "evaluate")
+"""Stage folders inside ``iter-NN/``, in data-flow order."""
+RUN_STAGES = ("collection", "test")
+"""Run-level stage folders (not tied to an iteration)."""
+
+MANIFEST_FILE = "manifest.json"
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+_PACKAGE_DIR = Path(__file__).resolve().parent
+_PACKAGE = "bat3r_core"
+_MAX_LISTED_FAILURES = 20
+
+
+def _check_name(what: str, value: Any) -> str:
+    if not isinstance(value, str) or not _NAME_RE.match(value):
+        raise ValueError(f"{what} must be a folder name of letters, digits, '.', '_' or '-' (not starting with "
+                         f"'.', '_' or '-'), got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class RunLayout:
+    """Paths of one run folder. Constructing it touches no file; ``create`` makes the folder.
+
+    Attributes:
+        storage_root: the catalog's storage root (absolute or relative to the working directory).
+        category: category name (a folder name).
+        run_name: run name (a folder name).
+    """
+
+    storage_root: Path
+    category: str
+    run_name: str
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.storage_root, (str, os.PathLike)):
+            raise TypeError(f"storage_root must be a path, got {type(self.storage_root).__name__}")
+        object.__setattr__(self, "storage_root", Path(self.storage_root))
+        _check_name("category", self.category)
+        _check_name("run_name", self.run_name)
+
+    @property
+    def root(self) -> Path:
+        """``<storage root>/<category>/<run name>``."""
+        return self.storage_root / self.category / self.run_name
+
+    @property
+    def manifest(self) -> Path:
+        return self.root / MANIFEST_FILE
+
+    @property
+    def metrics(self) -> Path:
+        return self.root / "metrics.parquet"
+
+    @property
+    def report(self) -> Path:
+        return self.root / "report.html"
+
+    @property
+    def results_dir(self) -> Path:
+        """Where the orchestration persists task results (Prefect result storage)."""
+        return self.root / ".prefect" / "results"
+
+    def iteration_dir(self, iteration: int) -> Path:
+        """``iter-NN`` (two digits at least) for iteration ``iteration >= 0``."""
+        if isinstance(iteration, bool) or not isinstance(iteration, int) or iteration < 0:
+            raise ValueError(f"iteration must be an integer >= 0, got {iteration!r}")
+        return self.root / f"iter-{iteration:02d}"
+
+    def stage_dir(self, iteration: int, stage: str) -> Path:
+        """``iter-NN/<stage>``; ``stage`` is one of ``ITERATION_STAGES``."""
+        if stage not in ITERATION_STAGES:
+            raise ValueError(f"stage must be one of {list(ITERATION_STAGES)}, got {stage!r}")
+        return self.iteration_dir(iteration) / stage
+
+    def run_stage_dir(self, stage: str) -> Path:
+        """A run-level stage folder; ``stage`` is one of ``RUN_STAGES``."""
+        if stage not in RUN_STAGES:
+            raise ValueError(f"run-level stage must be one of {list(RUN_STAGES)}, got {stage!r}")
+        return self.root / stage
+
+    def create(self) -> "RunLayout":
+        """Create the run folder (and its parents); returns ``self``."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        return self
+
+
+# ------------------------------------------------------------------------------------------------ code versions
+
+def code_version() -> str:
+    """``git describe --always --dirty`` of the checkout holding bat3r_core (``"git:<describe>"``), else the
+    installed package version (``"bat3r <version>"``), else ``"bat3r <bat3r_core.__version__>"``."""
+    repo = _PACKAGE_DIR.parent
+    if (repo / ".git").exists():
+        try:
+            out = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=repo, capture_output=True,
+                                 text=True, timeout=10, check=True)
+            if out.stdout.strip():
+                return f"git:{out.stdout.strip()}"
+        except (OSError, subprocess.SubprocessError):
+            pass
+    try:
+        from importlib.metadata import PackageNotFoundError, version
+
+        return f"bat3r {version('bat3r')}"
+    except PackageNotFoundError:
+        from bat3r_core import __version__
+
+        return f"bat3r {__version__}"
+
+
+def _module_file(name: str) -> Path | None:
+    """Source file of a ``bat3r_core`` module name, resolved by path (nothing is imported); None if none."""
+    if name != _PACKAGE and not name.startswith(_PACKAGE + "."):
+        return None
+    rel = name.split(".")[1:]
+    base = _PACKAGE_DIR.joinpath(*rel)
+    if base.with_suffix(".py").is_file() and rel:
+        return base.with_suffix(".py")
+    if (base / "__init__.py").is_file():
+        return base / "__init__.py"
+    return None
+
+
+def _imported_modules(name: str, path: Path) -> set[str]:
+    """``bat3r_core`` module names imported anywhere in ``path`` (module level or inside functions)."""
+    is_package = path.name == "__init__.py"
+    package = name if is_package else name.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                parts = parts[: len(parts) - (node.level - 1)]
+                base = ".".join(parts + ([node.module] if node.module else []))
+            else:
+                base = node.module or ""
+            for alias in node.names:  # "from pkg import submodule" reads the submodule, not pkg/__init__
+                sub = f"{base}.{alias.name}"
+                found.add(sub if _module_file(sub) is not None else base)
+    return {m for m in found if _module_file(m) is not None}
+
+
+def _module_closure(root: str) -> dict[str, Path]:
+    todo, seen = [root], {}
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        path = _module_file(name)
+        if path is None:
+            continue
+        seen[name] = path
+        todo.extend(_imported_modules(name, path) - set(seen))
+    return seen
+
+
+def stage_code_version(stage_module: str | types.ModuleType) -> str:
+    """16-hex SHA-256 over the source of ``stage_module`` and every ``bat3r_core`` module it reaches by imports.
+
+    stage_module: a ``bat3r_core`` module or its dotted name (``"bat3r_core.predictor.features"``). Imports are
+    found statically (``ast``), including imports inside functions; a package's ``__init__`` counts only when it
+    is imported itself (``from bat3r_core import shards`` reads ``bat3r_core/shards.py``, not the re-exports).
+    Modules are hashed in name order, each as its name and its bytes.
+    """
+    name = stage_module.__name__ if isinstance(stage_module, types.ModuleType) else stage_module
+    if not isinstance(name, str):
+        raise TypeError(f"stage_module must be a module or a dotted name, got {type(stage_module).__name__}")
+    if _module_file(name) is None:
+        raise ValueError(f"stage_module must name a bat3r_core module with a source file, got {name!r}")
+    h = hashlib.sha256()
+    for mod, path in sorted(_module_closure(name).items()):
+        h.update(mod.encode() + b"\0")
+        h.update(path.read_bytes())
+        h.update(b"\0")
+    return h.hexdigest()[:16]
+
+
+# -------------------------------------------------------------------------------------------------- manifest
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_manifest(layout: RunLayout) -> dict[str, Any]:
+    """The run's ``manifest.json`` as a dict (``{}`` when it does not exist yet)."""
+    if not layout.manifest.is_file():
+        return {}
+    return json.loads(layout.manifest.read_text(encoding="utf-8"))
+
+
+def write_manifest(layout: RunLayout, config: Mapping[str, Any], stage_modules: Mapping[str, str]
+                   ) -> dict[str, Any]:
+    """Write ``manifest.json`` atomically and return its content.
+
+    config: the resolved run configuration (JSON-serialisable; e.g. ``config_utils.to_mapping`` of the stage
+    configs, plus the run parameters). stage_modules: stage name → the ``bat3r_core`` module it runs; each gets
+    its ``stage_code_version``. Keys: ``category, run_name, config, code_version, stage_code_versions, created,
+    updated`` (UTC ISO-8601; ``created`` is kept from an earlier manifest of the same run).
+    """
+    if not isinstance(config, Mapping):
+        raise TypeError(f"config must be a mapping, got {type(config).__name__}")
+    try:
+        json.dumps(config, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"config must be JSON-serialisable (no NaN): {e}") from e
+    now = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    previous = read_manifest(layout)
+    manifest = {
+        "category": layout.category,
+        "run_name": layout.run_name,
+        "config": dict(config),
+        "code_version": code_version(),
+        "stage_code_versions": {stage: stage_code_version(mod) for stage, mod in sorted(stage_modules.items())},
+        "created": previous.get("created", now),
+        "updated": now,
+    }
+    _atomic_write_text(layout.manifest, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    return manifest
+
+
+# ------------------------------------------------------------------------------------------------ shard records
+
+def shard_record(stage: str, index: int, paths: shards.ShardPaths) -> dict[str, Any]:
+    """The small record a task returns for a shard it wrote (JSON-serialisable; no arrays).
+
+    Keys: ``stage, index, parquet, npz`` (``""`` when the shard has no npz), ``content_hash``
+    (``shards.content_hash`` of its files), ``n_rows``, ``n_ok``, ``n_failed`` and ``failed_samples`` (at most
+    20 ``[sample_id, status, reason]`` of the rows whose status is not ``"ok"``).
+    """
+    if not paths.complete:
+        raise FileNotFoundError(f"shard {paths.parquet} does not exist or is incomplete")
+    files = [paths.parquet] + ([paths.npz] if paths.npz.is_file() else [])
+    table = pq.read_table(paths.parquet, columns=["sample_id", "status", "reason"])
+    ok = shards.ok_mask(table)
+    bad = [[r["sample_id"], r["status"], r["reason"]] for r, good in zip(table.to_pylist(), ok) if not good]
+    return {
+        "stage": stage, "index": int(index), "parquet": str(paths.parquet),
+        "npz": str(paths.npz) if paths.npz.is_file() else "",
+        "content_hash": shards.content_hash(files), "n_rows": table.num_rows, "n_ok": int(ok.sum()),
+        "n_failed": len(bad), "failed_samples": bad[:_MAX_LISTED_FAILURES],
+    }
+
+
+# --------------------------------------------------------------------------------------- failed-shard policy
+
+@dataclass(frozen=True)
+class ShardFailure:
+    """A shard whose task failed after its retries: ``label`` (e.g. ``part-00003``) and the error text."""
+
+    label: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class FailureSummary:
+    """Outcome of one stage's fan-out: ``n_total`` shards, the ``failures``, and the limit they were held to."""
+
+    stage: str
+    n_total: int
+    failures: tuple[ShardFailure, ...]
+    max_failed_fraction: float
+
+    @property
+    def failed_fraction(self) -> float:
+        return len(self.failures) / self.n_total if self.n_total else 0.0
+
+    def describe(self) -> str:
+        """One line per failure after a header, e.g. ``render: 1 of 4 shards failed (25.0%, limit 50.0%)``."""
+        head = (f"{self.stage}: {len(self.failures)} of {self.n_total} shards failed "
+                f"({100 * self.failed_fraction:.1f}%, limit {100 * self.max_failed_fraction:.1f}%)")
+        return "\n".join([head] + [f"  {f.label}: {f.reason}" for f in self.failures])
+
+
+class TooManyFailedShards(RuntimeError):
+    """More shards of a stage failed than the run allows; the message lists them."""
+
+    def __init__(self, summary: FailureSummary) -> None:
+        super().__init__(f"stage {summary.describe()}\nThe failed fraction exceeds the limit "
+                         f"(max_failed_fraction={summary.max_failed_fraction}); fix the cause and rerun with the "
+                         f"same run name (completed shards are reused), or raise the limit.")
+        self.summary = summary
+
+
+def apply_failure_policy(stage: str, n_total: int, failures: Iterable[ShardFailure | tuple[str, str]],
+                         max_failed_fraction: float) -> FailureSummary:
+    """Decide whether a stage may continue with some shards failed.
+
+    n_total: shards the stage fanned out over (>= 0). failures: the shards that failed after retries, as
+    ``ShardFailure`` or ``(label, reason)``. max_failed_fraction: in [0, 1]; the stage continues when
+    ``failed / n_total <= max_failed_fraction`` (0 tolerates no failure, 1 tolerates all).
+    Returns the summary; raises ``TooManyFailedShards`` (listing every failed shard) otherwise.
+    """
+    if isinstance(n_total, bool) or not isinstance(n_total, int) or n_total < 0:
+        raise ValueError(f"n_total must be an integer >= 0, got {n_total!r}")
+    if not isinstance(max_failed_fraction, (int, float)) or isinstance(max_failed_fraction, bool) \
+            or not math.isfinite(max_failed_fraction) or not 0.0 <= max_failed_fraction <= 1.0:
+        raise ValueError(f"max_failed_fraction must be a number in [0, 1], got {max_failed_fraction!r}")
+    items = tuple(f if isinstance(f, ShardFailure) else ShardFailure(str(f[0]), str(f[1])) for f in failures)
+    if len(items) > n_total:
+        raise ValueError(f"{len(items)} failures reported for stage {stage!r} but only n_total={n_total} shards")
+    summary = FailureSummary(stage, n_total, items, float(max_failed_fraction))
+    if summary.failed_fraction > summary.max_failed_fraction:
+        raise TooManyFailedShards(summary)
+    return summary
