@@ -435,13 +435,18 @@ def _section_cameras(d: _RunData) -> str:
             n = len(per)
             cols = min(5, n)
             rows = int(math.ceil(n / cols))
-            fig = Figure(figsize=(2.8 * cols, 2.4 * rows), layout="constrained")
+            fig = Figure(figsize=(2.6 * cols + 0.8, 2.2 * rows + 0.5))
+            fig.subplots_adjust(left=0.06, right=0.9, bottom=0.1, top=0.86, wspace=0.12, hspace=0.35)
             vmax = max(float(analysis.CameraHistograms.log_counts(hc.az_el).max()) for hc in per.values()) or 1.0
+            axes = []
             for k, (c, hc) in enumerate(per.items()):
                 ax = fig.add_subplot(rows, cols, k + 1)
-                im = _heat(ax, hc.az_el, hc.az_edges, hc.el_edges, "azimuth (°)", "elevation (°)",
-                           f"cluster {c} (n={hc.n})", vmax=vmax)
-            fig.colorbar(im, ax=fig.axes, label="log10(1 + count)", fraction=0.02)
+                outer_x, outer_y = k >= n - cols, k % cols == 0
+                im = _heat(ax, hc.az_el, hc.az_edges, hc.el_edges, "azimuth (°)" if outer_x else "",
+                           "elevation (°)" if outer_y else "", f"cluster {c} (n={hc.n})", vmax=vmax)
+                ax.tick_params(labelbottom=outer_x, labelleft=outer_y, labelsize=7)
+                axes.append(ax)
+            fig.colorbar(im, ax=axes, label="log10(1 + count)", fraction=0.02, pad=0.02)
             fig.suptitle(f"{label}: azimuth × elevation per pose cluster (log scale)", fontsize=10)
             parts.append(_png(fig, f"camera heat maps per cluster, {label}"))
     return "".join(parts)
