@@ -188,6 +188,68 @@ def _candidate_pixels(posed_cam: np.ndarray, camera: PinholeCamera) -> np.ndarra
     return (rows * W + cols).ravel()
 
 
+@dataclass(frozen=True, eq=False)
+class _SparseMaps:
+    """The occupied entries of one sample's maps: what a worker process sends back (dense maps are ~90 % zeros)."""
+
+    index: np.ndarray  # (M,) int64 flat index into (H * W * K)
+    P: np.ndarray  # (M, 3) float32, camera frame
+    Q: np.ndarray  # (M, 3) float32, canonical frame
+    object_depth: float
+    status: str = STATUS_OK
+    reason: str = ""
+
+
+def _check_layers_frame(num_layers, frame) -> None:
+    if isinstance(num_layers, bool) or not isinstance(num_layers, (int, np.integer)) or num_layers < 1:
+        raise ValueError(f"num_layers must be an int >= 1, got {num_layers!r}")
+    if frame not in ("world", "camera"):
+        raise ValueError(f"frame must be 'world' or 'camera', got {frame!r}")
+
+
+def _sparse_maps(posed_vertices, canonical_vertices, faces, camera: PinholeCamera, num_layers: int, frame: str,
+                 nthreads: int) -> _SparseMaps:
+    if not isinstance(camera, PinholeCamera):
+        raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+    _check_layers_frame(num_layers, frame)
+    posed = _vertices("posed_vertices", posed_vertices)
+    canon = _vertices("canonical_vertices", canonical_vertices, expected_rows=posed.shape[0])
+    f = _faces(faces, posed.shape[0])
+    posed_cam = camera.world_to_camera(posed) if frame == "world" else posed
+    K = int(num_layers)
+    depth0 = object_depth_of(posed_cam) if posed.shape[0] else 0.0
+    empty = (np.zeros(0, np.int64), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), depth0)
+
+    f = f[nondegenerate_faces(posed_cam, f)] if f.shape[0] else f
+    if f.shape[0] == 0:
+        return _SparseMaps(*empty, STATUS_EMPTY, "the mesh has no non-degenerate faces")
+    pixels = _candidate_pixels(posed_cam, camera)
+    ray_id = np.zeros(0, np.int64)
+    if pixels.size:
+        dirs = camera.pixel_ray_directions().reshape(-1, 3)[pixels].astype(np.float32)
+        ray_id, _, face, uv, rank = sorted_hits(posed_cam, f, dirs, nthreads)
+    if ray_id.shape[0] == 0:
+        return _SparseMaps(*empty, STATUS_EMPTY,
+                           "no pixel ray hits the mesh (camera looking away or mesh outside the image)")
+    keep = rank < K
+    ray_id, face, uv, rank = pixels[ray_id[keep]], face[keep], uv[keep], rank[keep]
+    w = np.empty((ray_id.shape[0], 3))
+    w[:, 0] = 1.0 - uv[:, 0] - uv[:, 1]
+    w[:, 1:] = uv
+    tri = f[face]  # (M, 3) vertex indices
+    # (M, 3 corners) weights x (M, 3 corners, 3 xyz) -> (M, 3)
+    P = np.einsum("mc,mcx->mx", w, posed_cam[tri]).astype(np.float32)
+    Q = np.einsum("mc,mcx->mx", w, canon[tri]).astype(np.float32)
+    return _SparseMaps(ray_id * K + rank, P, Q, depth0)
+
+
+def _scatter(s: _SparseMaps, P: np.ndarray, Q: np.ndarray, occ: np.ndarray) -> None:
+    """Write a sample's occupied entries into its zero-initialised (H, W, K, 3) / (H, W, K) arrays."""
+    P.reshape(-1, 3)[s.index] = s.P  # P, Q and occ are contiguous: reshape gives views
+    Q.reshape(-1, 3)[s.index] = s.Q
+    occ.reshape(-1)[s.index] = True
+
+
 def dual_point_maps(posed_vertices: np.ndarray, canonical_vertices: np.ndarray, faces: np.ndarray,
                     camera: PinholeCamera, num_layers: int = 4, frame: str = "world", nthreads: int = 0
                     ) -> DualPointMaps:
@@ -205,48 +267,50 @@ def dual_point_maps(posed_vertices: np.ndarray, canonical_vertices: np.ndarray, 
     Returns:
         DualPointMaps with P, Q (H, W, K, 3) float32, occupancy (H, W, K), object_depth, status and reason.
     """
-    if not isinstance(camera, PinholeCamera):
-        raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
-    if isinstance(num_layers, bool) or not isinstance(num_layers, (int, np.integer)) or num_layers < 1:
-        raise ValueError(f"num_layers must be an int >= 1, got {num_layers!r}")
-    if frame not in ("world", "camera"):
-        raise ValueError(f"frame must be 'world' or 'camera', got {frame!r}")
-    posed = _vertices("posed_vertices", posed_vertices)
-    canon = _vertices("canonical_vertices", canonical_vertices, expected_rows=posed.shape[0])
-    f = _faces(faces, posed.shape[0])
-    posed_cam = camera.world_to_camera(posed) if frame == "world" else posed
+    s = _sparse_maps(posed_vertices, canonical_vertices, faces, camera, num_layers, frame, nthreads)
     H, W, K = camera.height, camera.width, int(num_layers)
-    P = np.zeros((H * W, K, 3), dtype=np.float32)
-    Q = np.zeros((H * W, K, 3), dtype=np.float32)
-    occ = np.zeros((H * W, K), dtype=bool)
-    depth0 = object_depth_of(posed_cam) if posed.shape[0] else 0.0
-
-    f = f[nondegenerate_faces(posed_cam, f)] if f.shape[0] else f
-    if f.shape[0] == 0:
-        return DualPointMaps(P.reshape(H, W, K, 3), Q.reshape(H, W, K, 3), occ.reshape(H, W, K), depth0,
-                             STATUS_EMPTY, "the mesh has no non-degenerate faces")
-    pixels = _candidate_pixels(posed_cam, camera)
-    if pixels.size:
-        dirs = camera.pixel_ray_directions().reshape(-1, 3)[pixels].astype(np.float32)
-        ray_id, _, face, uv, rank = sorted_hits(posed_cam, f, dirs, nthreads)
-        ray_id = pixels[ray_id]
-    if pixels.size == 0 or ray_id.shape[0] == 0:
-        return DualPointMaps(P.reshape(H, W, K, 3), Q.reshape(H, W, K, 3), occ.reshape(H, W, K), depth0,
-                             STATUS_EMPTY, "no pixel ray hits the mesh (camera looking away or mesh outside the image)")
-    keep = rank < K
-    ray_id, face, uv, rank = ray_id[keep], face[keep], uv[keep], rank[keep]
-    w = np.empty((ray_id.shape[0], 3))
-    w[:, 0] = 1.0 - uv[:, 0] - uv[:, 1]
-    w[:, 1:] = uv
-    tri = f[face]  # (M, 3) vertex indices
-    # (M, 3 corners, 3 xyz) weighted by (M, 3 corners) -> (M, 3)
-    P[ray_id, rank] = np.einsum("mc,mcx->mx", w, posed_cam[tri])
-    Q[ray_id, rank] = np.einsum("mc,mcx->mx", w, canon[tri])
-    occ[ray_id, rank] = True
-    return DualPointMaps(P.reshape(H, W, K, 3), Q.reshape(H, W, K, 3), occ.reshape(H, W, K), depth0)
+    P = np.zeros((H, W, K, 3), dtype=np.float32)
+    Q = np.zeros((H, W, K, 3), dtype=np.float32)
+    occ = np.zeros((H, W, K), dtype=bool)
+    _scatter(s, P, Q, occ)
+    return DualPointMaps(P, Q, occ, s.object_depth, s.status, s.reason)
 
 
 # ---------------------------------------------------------------------------------------------- many samples
+def _check_batch(posed_vertices, cameras) -> np.ndarray:
+    posed = np.asarray(posed_vertices, dtype=np.float64)
+    if posed.ndim != 3 or posed.shape[2] != 3:
+        raise ValueError(f"posed_vertices must have shape (N, V, 3), got {posed.shape}")
+    if len(cameras) != posed.shape[0]:
+        raise ValueError(f"got {len(cameras)} cameras for {posed.shape[0]} posed meshes")
+    for i, c in enumerate(cameras):
+        if not isinstance(c, PinholeCamera):
+            raise TypeError(f"cameras[{i}] must be a PinholeCamera, got {type(c).__name__}")
+    sizes = {(c.width, c.height) for c in cameras}
+    if len(sizes) > 1:
+        raise ValueError(f"all cameras must share one image size, got {sorted(sizes)}")
+    return posed
+
+
+def _assemble(parts: list[_SparseMaps], cameras: Sequence[PinholeCamera], num_layers: int) -> DualPointMapBatch:
+    n = len(parts)
+    H, W = (cameras[0].height, cameras[0].width) if n else (0, 0)
+    K = int(num_layers)
+    P = np.zeros((n, H, W, K, 3), dtype=np.float32)
+    Q = np.zeros((n, H, W, K, 3), dtype=np.float32)
+    occ = np.zeros((n, H, W, K), dtype=bool)
+    for i, s in enumerate(parts):
+        _scatter(s, P[i], Q[i], occ[i])
+    return DualPointMapBatch(P, Q, occ, np.array([s.object_depth for s in parts], dtype=np.float32),
+                             [s.status for s in parts], [s.reason for s in parts])
+
+
+def _sparse_chunk(posed: np.ndarray, canonical_vertices, faces, cameras, num_layers, frame, nthreads
+                  ) -> list[_SparseMaps]:
+    return [_sparse_maps(posed[i], canonical_vertices, faces, cameras[i], num_layers, frame, nthreads)
+            for i in range(posed.shape[0])]
+
+
 def dual_point_maps_batch(posed_vertices: np.ndarray, canonical_vertices: np.ndarray, faces: np.ndarray,
                           cameras: Sequence[PinholeCamera], num_layers: int = 4, frame: str = "world",
                           nthreads: int = 0) -> DualPointMapBatch:
@@ -259,36 +323,10 @@ def dual_point_maps_batch(posed_vertices: np.ndarray, canonical_vertices: np.nda
     Returns:
         DualPointMapBatch with (N, ...) arrays and per-sample status/reason.
     """
-    posed = np.asarray(posed_vertices, dtype=np.float64)
-    if posed.ndim != 3 or posed.shape[2] != 3:
-        raise ValueError(f"posed_vertices must have shape (N, V, 3), got {posed.shape}")
-    if len(cameras) != posed.shape[0]:
-        raise ValueError(f"got {len(cameras)} cameras for {posed.shape[0]} posed meshes")
-    sizes = {(c.width, c.height) for c in cameras}
-    if len(sizes) > 1:
-        raise ValueError(f"all cameras must share one image size, got {sorted(sizes)}")
-    maps = [dual_point_maps(posed[i], canonical_vertices, faces, cameras[i], num_layers, frame, nthreads)
-            for i in range(posed.shape[0])]
-    return _stack(maps, cameras[0] if cameras else None, num_layers)
-
-
-def _stack(maps: list[DualPointMaps], camera: PinholeCamera | None, num_layers: int) -> DualPointMapBatch:
-    if not maps:
-        h, w = (camera.height, camera.width) if camera is not None else (0, 0)
-        return DualPointMapBatch(np.zeros((0, h, w, num_layers, 3), np.float32),
-                                 np.zeros((0, h, w, num_layers, 3), np.float32),
-                                 np.zeros((0, h, w, num_layers), bool), np.zeros(0, np.float32), [], [])
-    return DualPointMapBatch(np.stack([m.P for m in maps]), np.stack([m.Q for m in maps]),
-                             np.stack([m.occupancy for m in maps]),
-                             np.array([m.object_depth for m in maps], dtype=np.float32),
-                             [m.status for m in maps], [m.reason for m in maps])
-
-
-def _concat(parts: list[DualPointMapBatch]) -> DualPointMapBatch:
-    return DualPointMapBatch(np.concatenate([p.P for p in parts]), np.concatenate([p.Q for p in parts]),
-                             np.concatenate([p.occupancy for p in parts]),
-                             np.concatenate([p.object_depth for p in parts]),
-                             [s for p in parts for s in p.status], [r for p in parts for r in p.reason])
+    posed = _check_batch(posed_vertices, cameras)
+    _check_layers_frame(num_layers, frame)
+    parts = _sparse_chunk(posed, canonical_vertices, faces, list(cameras), num_layers, frame, nthreads)
+    return _assemble(parts, cameras, num_layers)
 
 
 def dual_point_maps_parallel(posed_vertices: np.ndarray, canonical_vertices: np.ndarray, faces: np.ndarray,
@@ -297,25 +335,25 @@ def dual_point_maps_parallel(posed_vertices: np.ndarray, canonical_vertices: np.
                              ) -> DualPointMapBatch:
     """:func:`dual_point_maps_batch` split into chunks of ``chunk_size`` samples over a process pool.
 
-    Each worker runs open3d single-threaded. ``mp_context`` is ``"spawn"`` (safe in any parent, e.g. one that
-    imported bpy or torch) or ``"fork"`` (faster start on Linux). ``workers <= 1`` runs in this process.
+    Workers run open3d single-threaded and send back only the occupied entries; this process assembles the dense
+    arrays. ``mp_context`` is ``"spawn"`` (safe in any parent, e.g. one that imported bpy or torch; each worker
+    pays the open3d import, ~1 s) or ``"fork"`` (faster start on Linux). ``workers <= 1`` runs in this process.
     Results are in input order and identical to :func:`dual_point_maps_batch`.
     """
-    posed = np.asarray(posed_vertices, dtype=np.float64)
-    if posed.ndim != 3 or len(cameras) != posed.shape[0]:
-        raise ValueError(f"posed_vertices must be (N, V, 3) with N = len(cameras) = {len(cameras)}, got {posed.shape}")
-    if chunk_size < 1:
-        raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+    posed = _check_batch(posed_vertices, cameras)
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"chunk_size must be an int >= 1, got {chunk_size!r}")
     if workers <= 1 or posed.shape[0] <= chunk_size:
         return dual_point_maps_batch(posed, canonical_vertices, faces, cameras, num_layers, frame,
-                                     nthreads=0 if workers <= 1 else workers)
+                                     nthreads=0 if workers <= 1 else int(workers))
     canon = np.asarray(canonical_vertices, dtype=np.float64)
     f = np.asarray(faces)
-    starts = range(0, posed.shape[0], chunk_size)
-    with cf.ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(mp_context)) as pool:
-        futures = [pool.submit(dual_point_maps_batch, posed[s:s + chunk_size], canon, f,
-                               list(cameras[s:s + chunk_size]), num_layers, frame, 1) for s in starts]
-        return _concat([fu.result() for fu in futures])
+    cams = list(cameras)
+    with cf.ProcessPoolExecutor(max_workers=int(workers), mp_context=mp.get_context(mp_context)) as pool:
+        futures = [pool.submit(_sparse_chunk, posed[s:s + chunk_size], canon, f, cams[s:s + chunk_size],
+                               num_layers, frame, 1) for s in range(0, posed.shape[0], chunk_size)]
+        parts = [p for fu in futures for p in fu.result()]
+    return _assemble(parts, cams, num_layers)
 
 
 # ---------------------------------------------------------------------------------------------- point clouds
