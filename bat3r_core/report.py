@@ -222,32 +222,47 @@ class _RunData:
     samples: pa.Table
     fits: dict[int, pa.Table]
     qualitative: dict[int, Path]
+    load_errors: list[str]
+
+
+def _guarded(what: str, fn: Callable, default, errors: list[str]):
+    """``fn()``, or ``default`` with a message appended to ``errors`` when reading an input fails."""
+    try:
+        return fn()
+    except Exception as exc:  # an unreadable input is reported on the page, never fatal
+        errors.append(f"{what}: {type(exc).__name__}: {exc}")
+        return default
+
+
+def _read_manifest(path: Path) -> dict:
+    if not path.is_file():
+        return {}
+    loaded = json.loads(path.read_text(encoding="utf-8"))
+    return loaded if isinstance(loaded, dict) else {}
 
 
 def _load(run_dir: Path) -> _RunData:
-    manifest: dict = {}
-    mpath = run_dir / "manifest.json"
-    if mpath.is_file():
-        try:
-            loaded = json.loads(mpath.read_text())
-            manifest = loaded if isinstance(loaded, dict) else {}
-        except (OSError, json.JSONDecodeError):
-            manifest = {}
-    samples = evaluation.read_sample_rows(run_dir)
-    metrics = evaluation.read_metrics(run_dir)
+    errors: list[str] = []
+    manifest = _guarded("manifest.json", lambda: _read_manifest(run_dir / "manifest.json"), {}, errors)
+    samples = _guarded("per-sample evaluation rows", lambda: evaluation.read_sample_rows(run_dir),
+                       evaluation.SAMPLE_SCHEMA.empty_table(), errors)
+    metrics = _guarded("metrics.parquet", lambda: evaluation.read_metrics(run_dir),
+                       evaluation.METRICS_SCHEMA.empty_table(), errors)
     note = ""
     if metrics.num_rows == 0 and samples.num_rows:
-        metrics = pa.Table.from_pylist(evaluation.aggregate(samples), schema=evaluation.METRICS_SCHEMA)
-        note = "metrics.parquet not written yet: values computed from the per-sample rows."
+        metrics = _guarded("aggregation of the per-sample rows", lambda: pa.Table.from_pylist(
+            evaluation.aggregate(samples), schema=evaluation.METRICS_SCHEMA), metrics, errors)
+        if metrics.num_rows:
+            note = "metrics.parquet not written yet: values computed from the per-sample rows."
     fits, qual = {}, {}
     for it, d in evaluation.iteration_dirs(run_dir):
-        t = shards.read_table(d / FIT_STAGE)
-        if t.num_rows:
+        t = _guarded(f"iteration {it} fit rows", lambda: shards.read_table(d / FIT_STAGE), None, errors)
+        if t is not None and t.num_rows:
             fits[it] = t
         q = d / evaluation.EVALUATE_STAGE / QUALITATIVE_FILE
         if q.is_file():
             qual[it] = q
-    return _RunData(run_dir, manifest, metrics, note, samples, fits, qual)
+    return _RunData(run_dir, manifest, metrics, note, samples, fits, qual, errors)
 
 
 # ---------------------------------------------------------------------------------------------- sections
@@ -258,6 +273,7 @@ def _section_summary(d: _RunData) -> str:
     parts = [f"<p>Run folder <code>{html.escape(str(d.run_dir))}</code>; iteration folders: "
              f"{', '.join(map(str, iters)) if iters else 'none yet'}.</p>"]
     parts.append(_table(["manifest entry", "value"], items) if items else _note("manifest.json: not available yet."))
+    parts.extend(f'<p class="error">Could not read {html.escape(e)}</p>' for e in d.load_errors)
     if d.metrics.num_rows:
         last = d.metrics.to_pylist()
         split = _main_split([r["split"] for r in last])

@@ -136,12 +136,14 @@ def _make_run(root: Path, iterations: int = 3, n: int = 120) -> Path:
 def _angle_fitter_stand_in():
     """A stand-in ``bat3r_core.viewpoints`` (same ``fit_angle_distribution`` signature) for checkouts where the
     real module has not landed; returns None when the real one imports."""
+    import importlib
+    import types
+
     try:
-        from bat3r_core.viewpoints import fit_angle_distribution  # noqa: F401
-        return None
+        if callable(getattr(importlib.import_module("bat3r_core.viewpoints"), "fit_angle_distribution", None)):
+            return None
     except ImportError:
         pass
-    import types
     from dataclasses import dataclass
 
     from scipy import stats
@@ -208,6 +210,11 @@ def test_report_of_an_empty_or_partial_run_shows_notes(tmp_path):
     assert "computed from the per-sample rows" in text
     assert "No fits yet" in text and "unreadable" in text
     assert not (run / "metrics.parquet").exists()  # the report reads, never writes metrics
+    # an unreadable shard is reported on the page instead of failing the report
+    (run / "iter-00" / "evaluate" / "part-00001.parquet").write_bytes(b"garbage")
+    text = R.build_report(run).read_text()
+    assert _parse(text).sections == list(R.SECTION_IDS)
+    assert "Could not read per-sample evaluation rows" in text
     with pytest.raises(FileNotFoundError, match="does not exist"):
         R.build_report(tmp_path / "missing")
 
