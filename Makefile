@@ -7,7 +7,7 @@ STAMP := $(VENV)/.bat3r-installed
 TORCH_VERSION := 2.13.0
 PYTEST_ARGS ?=
 
-.PHONY: install test demo bench server server-stop clean browser-deps
+.PHONY: install test demo bench server server-stop clean browser-deps system-libs
 
 $(PY):
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "bat3r needs Python 3.11 ($(PYTHON) not found; set PYTHON=...)"; exit 1; }
@@ -26,7 +26,15 @@ $(STAMP): pyproject.toml | $(PY)
 	$(PIP) install --quiet -e ".[test]"
 	@touch $(STAMP)
 
-install: $(STAMP)
+install: $(STAMP) system-libs
+
+# open3d (even the -cpu wheel) links libusb-1.0; Debian's minimal images lack it (needs root or sudo).
+system-libs:
+	@if ! ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; then \
+		if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then \
+			apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+		else echo "error: open3d needs the system library libusb-1.0 (Debian/Ubuntu: apt-get install libusb-1.0-0)"; exit 1; fi; \
+	fi
 
 # Headless Chromium for the report/dashboard browser tests (Debian package; needs root or sudo).
 browser-deps:

@@ -30,14 +30,18 @@ def _convert(tp: Any, value: Any, path: str) -> Any:
         args = get_args(tp)
         if value is None and type(None) in args:
             return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
+        candidates = [a for a in args if a is not type(None)]
+        errors: list[ConfigError] = []
+        for a in candidates:
             try:
                 return _convert(a, value, path)
             except ConfigError as e:
-                errors.append(str(e))
+                errors.append(e)
+        if len(candidates) == 1:
+            raise errors[0]  # Optional[X]: X's own message names the nested key
+        nested = [e for a, e in zip(candidates, errors) if dataclasses.is_dataclass(a) and isinstance(value, Mapping)]
+        if len(nested) == 1:
+            raise nested[0]
         raise ConfigError(f"{path}: expected {_type_name(tp)}, got {type(value).__name__} {value!r}")
     if origin is Literal:
         if value not in get_args(tp):

@@ -47,7 +47,10 @@ def shard_paths(folder: str | os.PathLike, index: int) -> ShardPaths:
     return ShardPaths(folder / f"{name}.parquet", folder / f"{name}.npz")
 
 
-def _atomic_write(path: Path, write_fn) -> None:
+def atomic_write(path: str | os.PathLike, write_fn) -> Path:
+    """Write ``path`` atomically: ``write_fn(tmp_path)`` writes a temporary file in the same folder, which is
+    fsynced and renamed over ``path``; on any error the temporary file is removed and ``path`` is untouched."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
@@ -60,6 +63,20 @@ def _atomic_write(path: Path, write_fn) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Atomically replace ``path`` with ``data``."""
+    def _write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            f.write(data)
+    return atomic_write(path, _write)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Atomically replace ``path`` with UTF-8 ``text``."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def _rows_to_table(rows: Sequence[Mapping[str, Any]] | pa.Table) -> pa.Table:
@@ -109,8 +126,8 @@ def write_shard(folder: str | os.PathLike, index: int, rows: Sequence[Mapping[st
             if a.ndim == 0 or a.shape[0] != table.num_rows:
                 raise ValueError(f"array '{k}' has shape {a.shape}; its first axis must equal the "
                                  f"{table.num_rows} rows of the shard")
-        _atomic_write(paths.npz, lambda tmp: _save_npz(tmp, arrays))
-    _atomic_write(paths.parquet, lambda tmp: pq.write_table(table, tmp))
+        atomic_write(paths.npz, lambda tmp: _save_npz(tmp, arrays))
+    atomic_write(paths.parquet, lambda tmp: pq.write_table(table, tmp))
     return paths
 
 
