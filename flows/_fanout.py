@@ -1,0 +1,113 @@
+"""Fan a stage task out over shards: progress artifact, cache-integrity check, failed-shard policy.
+
+``run_stage`` submits one task per call, updates a Prefect progress artifact as tasks finish, recomputes (with
+``refresh_cache``) any cached record whose files are gone or changed, collects the shards whose task failed after
+its retries, and applies ``bat3r_core.runs.apply_failure_policy``: the stage continues when the failed fraction is
+at most the limit (the failures are returned for the summary), else ``TooManyFailedShards`` stops the flow.
+"""
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+from prefect import Task
+from prefect.client.orchestration import get_client
+from prefect.artifacts import create_progress_artifact, update_progress_artifact
+from prefect.futures import as_completed
+from prefect.logging import get_run_logger
+
+from bat3r_core.runs import FailureSummary, ShardFailure, apply_failure_policy
+from tasks._cache import record_is_intact
+
+__all__ = ["StageResult", "run_stage", "artifact_key"]
+
+
+def artifact_key(*parts: Any) -> str:
+    """A Prefect artifact key (lowercase letters, digits, dashes) made of ``parts``."""
+    key = "-".join(str(p) for p in parts).lower()
+    return re.sub(r"-+", "-", re.sub(r"[^a-z0-9-]", "-", key)).strip("-")
+
+
+@dataclass(frozen=True)
+class StageResult:
+    """What a stage's fan-out produced.
+
+    records: the task records of the shards that succeeded, in call order. failures: the failed-shard summary.
+    cached: how many records came from the cache (state ``Cached``) and were intact. recomputed: cached records
+    whose files had changed or vanished and were recomputed. states: final state name per call (call order).
+    """
+
+    stage: str
+    records: tuple[dict, ...]
+    summary: FailureSummary
+    cached: int
+    recomputed: int
+    states: tuple[str, ...] = field(default=())
+
+
+def _label(call: Mapping[str, Any], position: int) -> str:
+    return f"part-{call['index']:05d}" if "index" in call else f"call-{position}"
+
+
+def _attempts(future: Any, wait_s: float = 10.0) -> int:
+    """Runs of a finished task run, as the API records it (task states reach the API asynchronously)."""
+    deadline = time.monotonic() + wait_s
+    with get_client(sync_client=True) as client:
+        while True:
+            run = client.read_task_run(future.task_run_id)
+            if (run.state is not None and run.state.is_final()) or time.monotonic() > deadline:
+                return int(run.run_count)
+            time.sleep(0.2)
+
+
+def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], *, progress_key: str,
+              max_failed_fraction: float) -> StageResult:
+    """Run ``stage_task(**call)`` for every call concurrently (on the flow's task runner).
+
+    calls: keyword arguments per task (with an ``index`` for shard tasks, used in labels). progress_key: the
+    artifact key of this stage's progress bar. Returns a ``StageResult``; raises ``TooManyFailedShards`` when the
+    failed fraction exceeds ``max_failed_fraction``.
+    """
+    logger = get_run_logger()
+    calls = list(calls)
+    progress_id = create_progress_artifact(progress=0.0, key=progress_key,
+                                           description=f"{stage}: 0 of {len(calls)} shards")
+    futures = [stage_task.submit(**call) for call in calls]
+    position = {id(f): i for i, f in enumerate(futures)}
+    records: dict[int, dict] = {}
+    states: dict[int, str] = {}
+    failures: list[ShardFailure] = []
+    cached = recomputed = 0
+    done = 0
+    for fut in as_completed(futures):
+        i = position[id(fut)]
+        label = _label(calls[i], i)
+        fut.wait()
+        state = fut.state
+        try:
+            record = fut.result()
+            if state.name == "Cached":
+                if record_is_intact(record):
+                    cached += 1
+                else:
+                    logger.warning("%s %s: cached result's files changed or vanished; recomputing", stage, label)
+                    refreshed = stage_task.with_options(refresh_cache=True).submit(**calls[i])
+                    record = refreshed.result()
+                    state = refreshed.state
+                    recomputed += 1
+            records[i] = record
+        except Exception as exc:  # the task failed after its retries: report the shard, apply the policy
+            attempts = _attempts(fut)
+            failures.append(ShardFailure(label, f"{type(exc).__name__}: {exc} (after {attempts} attempt(s))"))
+            logger.error("%s %s failed after %d attempt(s): %s", stage, label, attempts, exc)
+        states[i] = state.name
+        done += 1
+        update_progress_artifact(progress_id, 100.0 * done / max(len(calls), 1),
+                                 description=f"{stage}: {done} of {len(calls)} shards ({len(failures)} failed)")
+    summary = apply_failure_policy(stage, len(calls), sorted(failures, key=lambda f: f.label), max_failed_fraction)
+    if failures:
+        logger.warning("%s", summary.describe())
+    return StageResult(stage, tuple(records[i] for i in sorted(records)), summary, cached, recomputed,
+                       tuple(states[i] for i in range(len(calls))))

@@ -1,0 +1,122 @@
+"""Cache keys, retry settings and result storage shared by the stage tasks.
+
+A stage task's cache key is a SHA-256 over
+
+* the content of its input files (``bat3r_core.shards.content_hash``: names and bytes, in order),
+* its stage config (``config_utils.to_mapping`` → canonical JSON),
+* the code version of the ``bat3r_core`` module it calls (``bat3r_core.runs.stage_code_version``),
+* the resolved OUTPUT location: a cache hit does not re-create files, so the same inputs written to another run or
+  shard index must recompute.
+
+Tasks return small JSON records (paths, content hashes, counts; ``bat3r_core.runs.shard_record``) and never arrays,
+so results persist as JSON under the run folder (``RunLayout.results_dir``). A cached record whose files were
+deleted or changed since is detected by ``record_is_intact`` and recomputed by the flows (``refresh_cache``).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+from prefect import Task, task
+from prefect.tasks import exponential_backoff
+
+from bat3r_core import shards
+from bat3r_core.config_utils import to_mapping
+from bat3r_core.runs import RunLayout, stage_code_version
+
+__all__ = ["stage_cache_key", "shard_input_files", "record_is_intact", "stage_task", "for_run", "GPU_TAG",
+           "RETRY_BACKOFF_FACTOR"]
+
+GPU_TAG = "bat3r-gpu"
+"""Tag of tasks that occupy a GPU (a Prefect tag concurrency limit on it caps them server-wide)."""
+RETRY_BACKOFF_FACTOR = 2.0
+"""Seconds before the first retry; doubled for every further retry (``prefect.tasks.exponential_backoff``)."""
+
+_MISSING = "<missing>"
+
+
+def _config_json(config: Any) -> str:
+    try:
+        return json.dumps(to_mapping(config), sort_keys=True, separators=(",", ":"), allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"config must be JSON-serialisable to be part of a cache key: {e}") from e
+
+
+def stage_cache_key(stage: str, code_version: str, input_files: Iterable[str | os.PathLike], config: Any,
+                    output: str | os.PathLike) -> str:
+    """``"<stage>-<32 hex>"``: the cache key of one stage task (see the module docstring).
+
+    input_files: files whose bytes the task reads, in a fixed order; a missing file contributes its path and a
+    marker (the task then runs and reports the missing input itself). config: a config dataclass tree or plain
+    JSON-able data. output: the shard or folder the task writes (resolved to an absolute path).
+    """
+    if not isinstance(stage, str) or not stage:
+        raise ValueError(f"stage must be a non-empty string, got {stage!r}")
+    if not isinstance(code_version, str) or not code_version:
+        raise ValueError(f"code_version must be a non-empty string, got {code_version!r}")
+    h = hashlib.sha256()
+    for name, value in (("stage", stage), ("code", code_version)):
+        h.update(f"{name}={value}\0".encode())
+    for f in input_files:
+        p = Path(f)
+        digest = shards.content_hash([p]) if p.is_file() else _MISSING
+        h.update(f"input={p.resolve()}:{digest}\0".encode())
+    h.update(f"config={_config_json(config)}\0".encode())
+    h.update(f"output={Path(output).resolve()}\0".encode())
+    return f"{stage}-{h.hexdigest()[:32]}"
+
+
+def shard_input_files(folder: str | os.PathLike, index: int) -> list[Path]:
+    """The files of shard ``index`` of ``folder``: its Parquet file and, when it exists, its npz."""
+    p = shards.shard_paths(folder, index)
+    return [p.parquet] + ([p.npz] if p.npz.is_file() else [])
+
+
+def record_is_intact(record: Mapping[str, Any]) -> bool:
+    """True when the files a task record names still exist with the content hash the task saw.
+
+    Records carry ``parquet``/``npz`` (shards; hashed with ``shards.content_hash``) or ``files`` (a list of
+    paths, e.g. a checkpoint) together with ``content_hash``.
+    """
+    if "files" in record:
+        files = [Path(p) for p in record["files"]]
+    else:
+        files = [Path(record["parquet"])] + ([Path(record["npz"])] if record.get("npz") else [])
+    if not all(p.is_file() for p in files):
+        return False
+    return shards.content_hash(files) == record.get("content_hash")
+
+
+def stage_task(stage: str, module: str, *, inputs: Callable[[Mapping[str, Any]], Sequence[os.PathLike]],
+               output: Callable[[Mapping[str, Any]], os.PathLike], config_param: str = "config",
+               retries: int = 0, gpu: bool = False, **task_kwargs: Any) -> Callable[[Callable], Task]:
+    """Decorator: a Prefect task for one stage, cached by ``stage_cache_key``.
+
+    inputs / output: map the task's bound parameters to its input files and its output location.
+    config_param: the parameter holding the stage config. retries: retried with exponential back-off
+    (``RETRY_BACKOFF_FACTOR``·2^k seconds, 20 % jitter) — for rendering, I/O and inference. gpu: tag the task
+    ``GPU_TAG``. Results persist as JSON (``result_serializer="json"``).
+    """
+    version = stage_code_version(module)
+
+    def key_fn(context: Any, parameters: Mapping[str, Any]) -> str:
+        return stage_cache_key(stage, version, inputs(parameters), parameters.get(config_param), output(parameters))
+
+    def decorate(fn: Callable) -> Task:
+        options: dict[str, Any] = dict(name=f"{stage}", cache_key_fn=key_fn, persist_result=True,
+                                       result_serializer="json", tags=[stage] + ([GPU_TAG] if gpu else []),
+                                       retries=retries)
+        if retries:
+            options.update(retry_delay_seconds=exponential_backoff(RETRY_BACKOFF_FACTOR), retry_jitter_factor=0.2)
+        options.update(task_kwargs)
+        return task(**options)(fn)
+
+    return decorate
+
+
+def for_run(stage_task_: Task, layout: RunLayout, **options: Any) -> Task:
+    """``stage_task_`` with its results persisted under ``layout.results_dir`` (plus any other task options)."""
+    return stage_task_.with_options(result_storage=Path(layout.results_dir).resolve(), **options)

@@ -1,0 +1,24 @@
+"""Features stage: image features of one rendered (or collection) shard → one feature shard."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+from bat3r_core.config_utils import from_mapping
+from bat3r_core.predictor import features
+from bat3r_core.runs import shard_record
+from tasks._cache import shard_input_files, stage_task
+
+__all__ = ["extract_features_shard"]
+
+
+@stage_task("features", "bat3r_core.predictor.features",
+            inputs=lambda p: shard_input_files(p["input_dir"], p["index"]),
+            output=lambda p: Path(p["out_dir"]) / f"part-{p['index']:05d}")
+def extract_features_shard(input_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
+    """Features (``bat3r_core.predictor.features.extract_feature_shard``) of shard ``index`` of ``input_dir``
+    (npz ``rgb``/``mask``) into shard ``index`` of ``out_dir``. config: a ``FeatureConfig`` mapping.
+    Returns the shard record (``bat3r_core.runs.shard_record``)."""
+    cfg = from_mapping(features.FeatureConfig, config, "features")
+    paths = features.extract_feature_shard(input_dir, index, out_dir, cfg)
+    return shard_record("features", index, paths)
