@@ -1,0 +1,14 @@
+"""Dual point map predictor: network, loss, training and inference (features/collections live beside it)."""
+from bat3r_core.predictor.config import PRESETS, ModelConfig, TrainConfig, preset_configs
+from bat3r_core.predictor.data import ShardDataset, TrainingBatch, TrainingTargets, rgb_features
+from bat3r_core.predictor.loss import LossTerms, dual_pointmap_loss, huber_delta
+from bat3r_core.predictor.network import DualPointMapNet, PointMapPrediction, confidence
+from bat3r_core.predictor.train import Trainer, train_predictor, train_preset
+
+__all__ = [
+    "PRESETS", "ModelConfig", "TrainConfig", "preset_configs",
+    "ShardDataset", "TrainingBatch", "TrainingTargets", "rgb_features",
+    "LossTerms", "dual_pointmap_loss", "huber_delta",
+    "DualPointMapNet", "PointMapPrediction", "confidence",
+    "Trainer", "train_predictor", "train_preset",
+]

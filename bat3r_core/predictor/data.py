@@ -1,0 +1,159 @@
+"""Training data of the predictor: a dataset over a folder of rendered training shards.
+
+A shard's npz holds the arrays of ``docs/CONVENTIONS.md`` ("Training samples"); rows whose Parquet ``status`` is
+not ``"ok"`` are skipped. Features are computed per batch by a pluggable ``feature_fn(rgb, mask)``:
+``rgb (N, H, W, 3) uint8``, ``mask (N, H, W) bool`` -> ``(N, C, H, W) float32``. The default, ``rgb_features``, is
+the masked crop scaled to [0, 1] with the background set to 0.
+
+Targets are ``canonical_points`` Q, ``posed_points`` P relative to the object depth (``P - (0, 0, object_depth)``
+on occupied entries, 0 elsewhere) and ``occupancy``; all as float32/bool tensors.
+"""
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+import torch
+
+from bat3r_core.shards import list_shards, ok_mask, read_shard
+
+FeatureFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+_REQUIRED = ("rgb", "mask", "P", "Q", "occupancy", "object_depth")
+
+
+def rgb_features(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Reference ``rgb`` features: rgb (N, H, W, 3) uint8, mask (N, H, W) bool -> (N, 3, H, W) float32 in [0, 1],
+    background pixels 0."""
+    rgb = np.asarray(rgb)
+    mask = np.asarray(mask)
+    if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.dtype != np.uint8:
+        raise ValueError(f"rgb: expected (N, H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+    if mask.shape != rgb.shape[:3]:
+        raise ValueError(f"mask: expected shape {rgb.shape[:3]}, got {mask.shape}")
+    out = rgb.astype(np.float32) * np.float32(1.0 / 255.0) * mask[..., None].astype(np.float32)
+    return np.ascontiguousarray(out.transpose(0, 3, 1, 2))
+
+
+class TrainingTargets(NamedTuple):
+    """canonical_points (B, H, W, K, 3) float32 metres, canonical frame; posed_points (B, H, W, K, 3) float32
+    metres, camera frame minus the object depth; occupancy (B, H, W, K) bool."""
+
+    canonical_points: torch.Tensor
+    posed_points: torch.Tensor
+    occupancy: torch.Tensor
+
+
+class TrainingBatch(NamedTuple):
+    """features (B, C, H, W) float32; mask (B, H, W) bool (the rendered object mask); targets."""
+
+    features: torch.Tensor
+    mask: torch.Tensor
+    targets: TrainingTargets
+
+
+def relative_posed_points(posed_points: np.ndarray, occupancy: np.ndarray, object_depth: np.ndarray) -> np.ndarray:
+    """P (N, H, W, K, 3) camera frame -> ``P - (0, 0, object_depth)`` on occupied entries, 0 elsewhere (float32)."""
+    rel = posed_points.astype(np.float32).copy()
+    rel[..., 2] -= np.asarray(object_depth, np.float32).reshape(-1, *([1] * (rel.ndim - 2)))
+    rel[~occupancy] = 0.0
+    return rel
+
+
+class ShardDataset(torch.utils.data.Dataset):
+    """Map-style dataset over the complete training shards of ``folder``; item i is a ``TrainingBatch`` of one
+    sample without the batch axis. ``get_batch(indices)`` returns a batched ``TrainingBatch`` (one ``feature_fn``
+    call). At most ``cache_shards`` decoded shards are kept in memory."""
+
+    def __init__(self, folder: str | os.PathLike, feature_fn: FeatureFn | None = None, cache_shards: int = 4) -> None:
+        self.folder = Path(folder)
+        self.feature_fn: FeatureFn = feature_fn or rgb_features
+        self.cache_shards = max(1, int(cache_shards))
+        self._cache: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
+        shards = list_shards(self.folder)
+        if not shards:
+            raise FileNotFoundError(f"shards_dir: no complete shards (part-NNNNN.parquet) in {self.folder}")
+        self.shards: list[int] = []
+        self.rows: list[np.ndarray] = []  # per shard: the ok row indices
+        for s in shards:
+            table, _ = read_shard(self.folder, s, with_arrays=False)
+            ok = np.flatnonzero(ok_mask(table))
+            if len(ok):
+                self.shards.append(s)
+                self.rows.append(ok)
+        if not self.shards:
+            raise ValueError(f"shards_dir: no sample with status 'ok' in {self.folder}")
+        self._starts = np.cumsum([0] + [len(r) for r in self.rows])
+        first = self._arrays(0)
+        missing = [k for k in _REQUIRED if k not in first]
+        if missing:
+            raise ValueError(f"shard {self.folder}/part-{self.shards[0]:05d}.npz: missing arrays {missing}")
+        _, self.height, self.width, self.layers, _ = first["P"].shape
+        probe = self.feature_fn(first["rgb"][:1], first["mask"][:1])
+        if probe.ndim != 4 or probe.shape[0] != 1 or probe.shape[2:] != (self.height, self.width):
+            raise ValueError(f"feature_fn: expected (1, C, {self.height}, {self.width}) for one sample, "
+                             f"got {tuple(probe.shape)}")
+        self.channels = int(probe.shape[1])
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    @property
+    def shard_sizes(self) -> list[int]:
+        """Number of usable samples of each shard, in ``self.shards`` order."""
+        return [len(r) for r in self.rows]
+
+    def _arrays(self, shard_pos: int) -> dict[str, np.ndarray]:
+        if shard_pos in self._cache:
+            self._cache.move_to_end(shard_pos)
+            return self._cache[shard_pos]
+        _, arrays = read_shard(self.folder, self.shards[shard_pos])
+        self._cache[shard_pos] = arrays
+        while len(self._cache) > self.cache_shards:
+            self._cache.popitem(last=False)
+        return arrays
+
+    def locate(self, index: int) -> tuple[int, int]:
+        """Global sample index -> (position in ``self.shards``, row in that shard's npz)."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"index: expected 0 <= index < {len(self)}, got {index}")
+        pos = int(np.searchsorted(self._starts, index, side="right") - 1)
+        return pos, int(self.rows[pos][index - self._starts[pos]])
+
+    def epoch_order(self, seed: int, epoch: int, shuffle_shards: int = 4) -> np.ndarray:
+        """Deterministic sample order of ``epoch``: shards are permuted, then samples are shuffled within groups
+        of ``shuffle_shards`` consecutive shards (bounded memory). Depends on (seed, epoch) and the shard sizes
+        only."""
+        rng = np.random.default_rng([int(seed), int(epoch)])
+        perm = rng.permutation(len(self.shards))
+        groups = []
+        for g in range(0, len(perm), shuffle_shards):
+            idx = np.concatenate([np.arange(self._starts[p], self._starts[p + 1]) for p in perm[g:g + shuffle_shards]])
+            groups.append(rng.permutation(idx))
+        return np.concatenate(groups).astype(np.int64)
+
+    def get_batch(self, indices) -> TrainingBatch:
+        """Samples ``indices`` (global) stacked into a batch."""
+        parts: dict[str, list[np.ndarray]] = {k: [] for k in _REQUIRED}
+        for i in indices:
+            pos, row = self.locate(int(i))
+            arrays = self._arrays(pos)
+            for k in _REQUIRED:
+                parts[k].append(arrays[k][row])
+        a = {k: np.stack(v) for k, v in parts.items()}
+        if a["P"].shape[1:] != (self.height, self.width, self.layers, 3):
+            raise ValueError(f"P: expected (N, {self.height}, {self.width}, {self.layers}, 3) in every shard, "
+                             f"got {a['P'].shape}")
+        mask = a["mask"].astype(bool)
+        occ = a["occupancy"].astype(bool)
+        features = np.asarray(self.feature_fn(a["rgb"], mask), dtype=np.float32)
+        q = np.where(occ[..., None], a["Q"].astype(np.float32), 0.0).astype(np.float32)
+        p = relative_posed_points(a["P"], occ, a["object_depth"])
+        return TrainingBatch(torch.from_numpy(features), torch.from_numpy(mask),
+                             TrainingTargets(torch.from_numpy(q), torch.from_numpy(p), torch.from_numpy(occ)))
+
+    def __getitem__(self, index: int) -> TrainingBatch:
+        b = self.get_batch([index])
+        return TrainingBatch(b.features[0], b.mask[0], TrainingTargets(*(t[0] for t in b.targets)))
