@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -32,6 +31,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from bat3r_core import shards
+from bat3r_core.shards import atomic_write
 from bat3r_core.metrics import SampleMetrics
 
 __all__ = [
@@ -299,19 +299,6 @@ def failure_rates(azimuth_deg: np.ndarray, f_dist: np.ndarray, cd_cm: np.ndarray
     return FailureRates(rate, count.astype(np.int64), fails.astype(np.int64), az_edges, fd_edges, float(threshold_cm))
 
 
-def _write_parquet_atomic(table: pa.Table, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        pq.write_table(table, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def read_metrics(run_dir: str | os.PathLike) -> pa.Table:
     """``run_dir/metrics.parquet`` (an empty ``METRICS_SCHEMA`` table when it does not exist yet)."""
     path = Path(run_dir) / METRICS_FILE
@@ -341,7 +328,7 @@ def upsert_metrics(run_dir: str | os.PathLike, rows: Sequence[Mapping[str, Any]]
     for k in extra:
         cols[k] = pa.array([r.get(k) for r in merged])
     path = Path(run_dir) / METRICS_FILE
-    _write_parquet_atomic(pa.table(cols), path)
+    atomic_write(path, lambda tmp: pq.write_table(pa.table(cols), tmp))
     return path
 
 

@@ -26,7 +26,6 @@ import io
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -39,6 +38,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
 from bat3r_core import analysis, evaluation, shards
+from bat3r_core.shards import atomic_write_bytes
 
 __all__ = ["SECTION_IDS", "QUALITATIVE_FILE", "QualitativeInputs", "write_report_inputs", "read_report_inputs",
            "build_report"]
@@ -135,7 +135,7 @@ def write_report_inputs(stage_dir: str | os.PathLike, *, sample_ids: Sequence[st
             raise ValueError(f"cd_cm must have shape ({s},), got {cd.shape}")
         arrays["cd_cm"] = cd
     path = Path(stage_dir) / QUALITATIVE_FILE
-    _atomic_bytes(path, _npz_bytes(arrays))
+    atomic_write_bytes(path, _npz_bytes(arrays))
     return path
 
 
@@ -143,21 +143,6 @@ def _npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
-
-
-def _atomic_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def read_report_inputs(path: str | os.PathLike) -> QualitativeInputs:
@@ -685,5 +670,5 @@ def build_report(run_dir: str | os.PathLike) -> Path:
             f'{html.escape(title)}</h1><p>{html.escape(str(run_dir))}</p></header><nav>{nav}</nav><main>'
             + "".join(body) + "</main></body></html>")
     path = run_dir / REPORT_FILE
-    _atomic_bytes(path, page.encode("utf-8"))
+    atomic_write_bytes(path, page.encode("utf-8"))
     return path

@@ -21,7 +21,6 @@ import abc
 import hashlib
 import json
 import os
-import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -30,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from bat3r_core.shards import ShardPaths, list_shards, ok_mask, read_shard, write_shard
+from bat3r_core.shards import ShardPaths, atomic_write, list_shards, ok_mask, read_shard, write_shard
 
 FEATURE_CODE_VERSION = 1
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -124,17 +123,12 @@ def _hash_json(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _atomic_save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
+def _save_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Atomically write an (uncompressed) npz."""
+    def _write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
             np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, _write)
 
 
 # ------------------------------------------------------------------------------------------------------- registry
@@ -259,7 +253,7 @@ def fit_feature_pca(tokens: np.ndarray, channels: int, config_hash: str = "", n_
 
 def save_pca(path: str | os.PathLike, pca: FeaturePCA) -> None:
     """Write a PCA as npz (atomically)."""
-    _atomic_save_npz(Path(path), {
+    _save_npz(Path(path), {
         "mean": pca.mean, "components": pca.components, "explained_variance": pca.explained_variance,
         "scale": np.float64(pca.scale), "config_hash": np.array(pca.config_hash),
         "n_images": np.int64(pca.n_images), "n_tokens": np.int64(pca.n_tokens)})
@@ -463,7 +457,7 @@ class _FeatureCache:
 
     def store(self, keys: list[str], grids: np.ndarray) -> None:
         name = hashlib.sha256("".join(keys).encode()).hexdigest()[:16] + ".npz"
-        _atomic_save_npz(self.folder / name, {"keys": np.array(keys), "grids": grids.astype(np.float32)})
+        _save_npz(self.folder / name, {"keys": np.array(keys), "grids": grids.astype(np.float32)})
 
 
 _CACHES: dict[str, _FeatureCache] = {}
