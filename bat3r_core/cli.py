@@ -46,6 +46,26 @@ def _cmd_asset_toy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from .evaluation import evaluate_run, read_metrics
+    from .report import build_report
+
+    run = Path(args.run)
+    if not run.is_dir():
+        print(f"run folder {run} does not exist", file=sys.stderr)
+        return 2
+    metrics = evaluate_run(run)
+    report = build_report(run)
+    table = read_metrics(run).to_pylist()
+    cols = ["iteration", "split", "n", "mcd_cm", "pct_mcd_over_5cm", "rot_err_deg", "rms_cd_cm", "mv_rms_cd_cm"]
+    print("  ".join(f"{c:>16}" for c in cols))
+    for row in table:
+        print("  ".join(f"{row.get(c):>16.3f}" if isinstance(row.get(c), float) else f"{str(row.get(c)):>16}"
+                        for c in cols))
+    print(f"wrote {metrics} and {report}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bat3r", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -62,6 +82,10 @@ def build_parser() -> argparse.ArgumentParser:
     toy.add_argument("--out", type=Path, required=True, help="output .glb path")
     toy.add_argument("--coat", default="bay", help="procedural coat texture (bay, chestnut, grey, pinto)")
     toy.set_defaults(func=_cmd_asset_toy)
+
+    ev = sub.add_parser("evaluate", help="recompute metrics.parquet and report.html of a run from its stored rows")
+    ev.add_argument("--run", required=True, type=Path, help="run folder (<storage>/<category>/<run name>)")
+    ev.set_defaults(func=_cmd_evaluate)
     return parser
 
 
