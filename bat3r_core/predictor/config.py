@@ -81,7 +81,8 @@ class TrainConfig:
     amp_dtype: Literal["bfloat16", "float16", "none"] = "bfloat16"
     """Autocast dtype on CUDA; ignored on CPU, which always trains in float32."""
     deterministic: bool = False
-    """Call ``torch.use_deterministic_algorithms(True)`` (bit-exact reruns; slower on GPU)."""
+    """Train under ``torch.use_deterministic_algorithms(True)`` (restored afterwards): bit-exact reruns on GPU
+    too (set ``CUBLAS_WORKSPACE_CONFIG=:4096:8``), slower there. CPU training is reproducible without it."""
     shuffle_shards: int = 4
     """The data order shuffles samples within groups of this many shards (bounds the shard cache)."""
     log_every: int = 10

@@ -6,7 +6,8 @@ not ``"ok"`` are skipped. Features are computed per batch by a pluggable ``featu
 the masked crop scaled to [0, 1] with the background set to 0.
 
 Targets are ``canonical_points`` Q, ``posed_points`` P relative to the object depth (``P - (0, 0, object_depth)``
-on occupied entries, 0 elsewhere) and ``occupancy``; all as float32/bool tensors.
+on occupied entries, 0 elsewhere; this is how shards store P, see ``pointmaps.encode_float16``) and
+``occupancy``; float32/bool tensors.
 """
 from __future__ import annotations
 
@@ -52,14 +53,6 @@ class TrainingBatch(NamedTuple):
     features: torch.Tensor
     mask: torch.Tensor
     targets: TrainingTargets
-
-
-def relative_posed_points(posed_points: np.ndarray, occupancy: np.ndarray, object_depth: np.ndarray) -> np.ndarray:
-    """P (N, H, W, K, 3) camera frame -> ``P - (0, 0, object_depth)`` on occupied entries, 0 elsewhere (float32)."""
-    rel = posed_points.astype(np.float32).copy()
-    rel[..., 2] -= np.asarray(object_depth, np.float32).reshape(-1, *([1] * (rel.ndim - 2)))
-    rel[~occupancy] = 0.0
-    return rel
 
 
 class ShardDataset(torch.utils.data.Dataset):
@@ -149,8 +142,9 @@ class ShardDataset(torch.utils.data.Dataset):
         mask = a["mask"].astype(bool)
         occ = a["occupancy"].astype(bool)
         features = np.asarray(self.feature_fn(a["rgb"], mask), dtype=np.float32)
-        q = np.where(occ[..., None], a["Q"].astype(np.float32), 0.0).astype(np.float32)
-        p = relative_posed_points(a["P"], occ, a["object_depth"])
+        # shards store P relative to the object depth already: the regression target as is
+        q = np.where(occ[..., None], a["Q"].astype(np.float32), np.float32(0.0))
+        p = np.where(occ[..., None], a["P"].astype(np.float32), np.float32(0.0))
         return TrainingBatch(torch.from_numpy(features), torch.from_numpy(mask),
                              TrainingTargets(torch.from_numpy(q), torch.from_numpy(p), torch.from_numpy(occ)))
 

@@ -5,7 +5,8 @@ radius 0.2 m) in the canonical frame of ``docs/CONVENTIONS.md`` (+Y up, +Z forwa
 the body centre (the articulation), turns the whole object about the vertical axis and places it 2.5-3 m in front
 of an OpenCV pinhole camera (focal length 2 x resolution). Every pixel-centre ray is intersected with both spheres; all hits, sorted front to
 back, fill the K layers (at most 4 exist). Pixels are coloured by the layer-0 canonical coordinates with Lambert
-shading, so the canonical map is observable. The arrays follow the "Training samples" shard format.
+shading, so the canonical map is observable. The arrays follow the "Training samples" shard format (P stored
+relative to the object depth as float16, via ``pointmaps.encode_float16``).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import os
 
 import numpy as np
 
+from bat3r_core.pointmaps import encode_float16
 from bat3r_core.shards import ShardPaths, write_shard
 
 _BODY = (np.zeros(3), 0.35)
@@ -30,7 +32,7 @@ def _rot_y(a: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def _sample(rng: np.random.Generator, resolution: int, layers: int) -> dict[str, np.ndarray]:
+def _sample(rng: np.random.Generator, resolution: int, layers: int, with_head: bool) -> dict[str, np.ndarray]:
     f = 2.0 * resolution
     intr = np.array([[f, 0, resolution / 2], [0, f, resolution / 2], [0, 0, 1]])
     # canonical +Y up -> camera -y (up in the image): a half turn about x, then a small tilt and any turn about Y
@@ -41,7 +43,7 @@ def _sample(rng: np.random.Generator, resolution: int, layers: int) -> dict[str,
     trans -= rot @ (0.5 * (_BODY[0] + _HEAD[0]))
     # (posed centre, radius, canonical centre, rotation canonical -> camera) per sphere
     spheres = [(rot @ _BODY[0] + trans, _BODY[1], _BODY[0], rot),
-               (rot @ nod @ _HEAD[0] + trans, _HEAD[1], _HEAD[0], rot @ nod)]
+               (rot @ nod @ _HEAD[0] + trans, _HEAD[1], _HEAD[0], rot @ nod)][:2 if with_head else 1]
 
     jj, ii = np.meshgrid(np.arange(resolution) + 0.5, np.arange(resolution) + 0.5)
     dirs = np.stack([(jj - intr[0, 2]) / f, (ii - intr[1, 2]) / f, np.ones_like(jj)], -1)  # (H, W, 3), z = 1
@@ -78,8 +80,10 @@ def _sample(rng: np.random.Generator, resolution: int, layers: int) -> dict[str,
     normal_dot /= np.linalg.norm(dirs, axis=-1)
     colour = np.clip(0.5 + q_k[..., 0, :] / 1.2, 0, 1) * (0.4 + 0.6 * normal_dot[..., None])
     rgb = np.where(mask[..., None], (colour * 255).round().astype(np.uint8), _BACKGROUND)
-    return {"rgb": rgb.astype(np.uint8), "mask": mask, "P": p_k.astype(np.float16), "Q": q_k.astype(np.float16),
-            "occupancy": occ, "object_depth": np.float32((lo[2] + hi[2]) / 2),
+    depth = 0.5 * (lo[2] + hi[2])  # centre of the object's camera-z range
+    p16, q16 = encode_float16(p_k, q_k, occ, depth)
+    return {"rgb": rgb.astype(np.uint8), "mask": mask, "P": p16, "Q": q16, "occupancy": occ,
+            "object_depth": np.float32(depth),
             "K_intrinsics": intr.astype(np.float32)}
 
 
@@ -95,21 +99,23 @@ def _layer0_normals(points: np.ndarray, spheres, t0: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(t0)[..., None], normals, 0.0)
 
 
-def synthetic_samples(n: int, resolution: int, layers: int = 4, seed: int = 0) -> dict[str, np.ndarray]:
+def synthetic_samples(n: int, resolution: int, layers: int = 4, seed: int = 0, with_head: bool = True
+                      ) -> dict[str, np.ndarray]:
     """``n`` samples as stacked arrays of the training-shard format (``rgb (n, H, W, 3) uint8``, ``mask``, ``P``,
-    ``Q``, ``occupancy``, ``object_depth``, ``K_intrinsics``); H = W = ``resolution``; seeded."""
+    ``Q``, ``occupancy``, ``object_depth``, ``K_intrinsics``); H = W = ``resolution``; seeded. ``with_head=False``
+    keeps the body sphere only (two layers, smooth maps)."""
     if n < 1 or resolution < 2 or layers < 1:
         raise ValueError(f"synthetic_samples: expected n >= 1, resolution >= 2, layers >= 1, "
                          f"got {n}, {resolution}, {layers}")
     rng = np.random.default_rng(seed)
-    samples = [_sample(rng, resolution, layers) for _ in range(n)]
+    samples = [_sample(rng, resolution, layers, with_head) for _ in range(n)]
     return {k: np.stack([s[k] for s in samples]) for k in samples[0]}
 
 
 def write_synthetic_shards(folder: str | os.PathLike, n: int, resolution: int, layers: int = 4,
-                           shard_size: int = 16, seed: int = 0) -> list[ShardPaths]:
+                           shard_size: int = 16, seed: int = 0, with_head: bool = True) -> list[ShardPaths]:
     """Write ``n`` synthetic samples to training shards ``part-00000`` ... of ``folder``."""
-    arrays = synthetic_samples(n, resolution, layers, seed)
+    arrays = synthetic_samples(n, resolution, layers, seed, with_head)
     out = []
     for s, start in enumerate(range(0, n, shard_size)):
         part = {k: v[start:start + shard_size] for k, v in arrays.items()}

@@ -143,10 +143,6 @@ class Trainer:
         if len(dataset) < train_config.batch_size * self.world_size:
             raise ValueError(f"dataset: expected at least batch_size * world_size = "
                              f"{train_config.batch_size * self.world_size} samples, got {len(dataset)}")
-        if train_config.deterministic:
-            torch.use_deterministic_algorithms(True)
-            torch.backends.cudnn.benchmark = False
-
         seed_everything(train_config.seed)
         self.model = DualPointMapNet(model_config).to(self.device)
         self.ddp = (DistributedDataParallel(self.model, device_ids=[self.device.index] if self.device.type == "cuda"
@@ -185,6 +181,15 @@ class Trainer:
         ``predictor.pt`` once the last step is done, else of ``checkpoint.pt`` (possibly not yet written)."""
         cfg = self.config
         target = cfg.steps if until_step is None else min(int(until_step), cfg.steps)
+        previous = torch.are_deterministic_algorithms_enabled()
+        torch.use_deterministic_algorithms(previous or cfg.deterministic)
+        try:
+            return self._train(target)
+        finally:
+            torch.use_deterministic_algorithms(previous)
+
+    def _train(self, target: int) -> Path:
+        cfg = self.config
         module = self.ddp if self.ddp is not None else self.model
         self.model.train()
         t0 = time.perf_counter()

@@ -1,0 +1,224 @@
+"""Predictor network shapes, shard dataset, overfitting, exact resume and 2-process DDP (gloo, CPU)."""
+import socket
+
+import numpy as np
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from bat3r_core.config_utils import ConfigError
+from bat3r_core.pointmaps import decode_float16
+from bat3r_core.predictor.config import PRESETS, ModelConfig, TrainConfig, preset_configs
+from bat3r_core.predictor.data import ShardDataset, rgb_features
+from bat3r_core.predictor.infer import load_predictor
+from bat3r_core.predictor.network import DualPointMapNet
+from bat3r_core.predictor.synthetic import synthetic_samples, write_synthetic_shards
+from bat3r_core.predictor.train import CHECKPOINT_NAME, Trainer, WarmupCosine
+from bat3r_core.shards import read_shard, write_shard
+
+SMALL_MODEL = ModelConfig(resolution=16, layers=4, in_channels=3, base_channels=8, depth=2, two_stage=True)
+SMALL_TRAIN = TrainConfig(steps=6, batch_size=2, grad_accum=2, lr=3e-3, warmup_steps=2, checkpoint_every=2,
+                          loss="robust", grad_clip=1.0, seed=7, deterministic=True, shuffle_shards=1, log_every=1)
+
+
+@pytest.fixture(scope="module")
+def shards16(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("shards16")
+    write_synthetic_shards(folder, 8, 16, shard_size=3, seed=1)  # shards of 3, 3, 2 samples
+    return folder
+
+
+# ---------------------------------------------------------------------------------------------- network
+@pytest.mark.parametrize("two_stage", [True, False])
+def test_network_output_shapes(two_stage):
+    cfg = ModelConfig(resolution=16, layers=3, in_channels=5, base_channels=4, depth=2, two_stage=two_stage)
+    out = DualPointMapNet(cfg)(torch.randn(2, 5, 16, 16), torch.ones(2, 16, 16, dtype=torch.bool))
+    assert out.canonical_points.shape == (2, 16, 16, 3, 3)
+    assert out.posed_points.shape == (2, 16, 16, 3, 3)
+    for t in (out.occupancy_logits, out.canonical_confidence_logits, out.posed_confidence_logits):
+        assert t.shape == (2, 16, 16, 3)
+
+
+def test_two_stage_visible_canonical_map_comes_from_stage_one():
+    torch.manual_seed(0)
+    net = DualPointMapNet(SMALL_MODEL)
+    out = net(torch.randn(1, 3, 16, 16), torch.ones(1, 16, 16, dtype=torch.bool))
+    out.canonical_points[..., 0, :].sum().backward(retain_graph=True)
+    assert all(p.grad is None or torch.count_nonzero(p.grad) == 0 for p in net.stage2.parameters())
+    assert any(p.grad is not None and torch.count_nonzero(p.grad) > 0 for p in net.stage1.parameters())
+    net.zero_grad()
+    out.posed_points[..., 1, :].sum().backward()  # later layers see stage 1 through the conditioning
+    assert any(p.grad is not None and torch.count_nonzero(p.grad) > 0 for p in net.stage1.parameters())
+
+
+def test_network_input_checks():
+    net = DualPointMapNet(SMALL_MODEL)
+    with pytest.raises(ValueError, match=r"features: expected shape \(B, 3, 16, 16\), got \(1, 4, 16, 16\)"):
+        net(torch.zeros(1, 4, 16, 16), torch.ones(1, 16, 16))
+    with pytest.raises(ValueError, match=r"mask: expected shape \(1, 16, 16\)"):
+        net(torch.zeros(1, 3, 16, 16), torch.ones(1, 8, 8))
+    with pytest.raises(TypeError, match="config: expected ModelConfig"):
+        DualPointMapNet({"resolution": 16})
+
+
+# ---------------------------------------------------------------------------------------------- configs
+def test_presets_build_and_paper_matches_reference():
+    for name in PRESETS:
+        preset_configs(name)
+    model, train = preset_configs("paper")
+    assert (model.layers, model.resolution, model.in_channels, model.two_stage) == (4, 160, 64, True)
+    assert (train.batch_size, train.steps, train.lr, train.warmup_steps, train.grad_accum, train.weight_decay) == \
+        (12, 60000, 6e-4, 1000, 2, 0.01)
+    assert train.betas[0] > 0.9 and train.betas[1] > 0.999
+    with pytest.raises(ValueError, match="preset: expected one of"):
+        preset_configs("huge")
+    with pytest.raises(ConfigError, match=r"tiny.train.steps: expected an integer"):
+        preset_configs("tiny", {"train": {"steps": "many"}})
+    with pytest.raises(ConfigError, match="resolution: expected a multiple of 2\\*\\*depth = 8, got 20"):
+        ModelConfig(resolution=20, depth=3)
+
+
+def test_warmup_then_cosine():
+    f = WarmupCosine(warmup=4, total=14)
+    assert [round(f(s), 6) for s in range(4)] == [0.2, 0.4, 0.6, 0.8]
+    assert f(4) == pytest.approx(1.0)
+    assert f(9) == pytest.approx(0.5)
+    assert f(14) == pytest.approx(0.0, abs=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------- dataset
+def test_dataset_targets_follow_the_shard_format(tmp_path):
+    arrays = synthetic_samples(3, 16, seed=2)
+    rows = [{"sample_id": f"s{i}", "status": "ok" if i != 1 else "failed", "reason": "" if i != 1 else "x"}
+            for i in range(3)]
+    write_shard(tmp_path, 0, rows, arrays)
+    ds = ShardDataset(tmp_path)
+    assert len(ds) == 2 and (ds.height, ds.layers, ds.channels) == (16, 4, 3)
+    batch = ds.get_batch([0, 1])  # rows 0 and 2 (row 1 failed)
+    _, a = read_shard(tmp_path, 0)
+    P, Q = decode_float16(a["P"], a["Q"], a["occupancy"], a["object_depth"])
+    for j, row in enumerate((0, 2)):
+        occ = a["occupancy"][row]
+        assert torch.equal(batch.targets.occupancy[j], torch.from_numpy(occ))
+        rel = P[row].copy()
+        rel[..., 2] -= a["object_depth"][row]
+        rel[~occ] = 0
+        np.testing.assert_allclose(batch.targets.posed_points[j].numpy(), rel, atol=2e-6)
+        np.testing.assert_allclose(batch.targets.canonical_points[j].numpy(), Q[row], atol=0)
+        expected = a["rgb"][row].astype(np.float32) / 255 * a["mask"][row][..., None]
+        np.testing.assert_allclose(batch.features[j].numpy().transpose(1, 2, 0), expected, atol=1e-6)
+    with pytest.raises(ValueError, match=r"rgb: expected \(N, H, W, 3\) uint8"):
+        rgb_features(a["rgb"].astype(np.float32), a["mask"])
+
+
+def test_epoch_order_is_a_seeded_permutation(shards16):
+    ds = ShardDataset(shards16)
+    a = ds.epoch_order(3, 0, shuffle_shards=1)
+    assert sorted(a.tolist()) == list(range(8))
+    assert np.array_equal(a, ds.epoch_order(3, 0, shuffle_shards=1))
+    assert not np.array_equal(a, ds.epoch_order(3, 1, shuffle_shards=1))
+    # shuffle_shards=1: each shard's samples stay contiguous
+    shard_of = np.array([ds.locate(int(i))[0] for i in a])
+    assert (np.diff(shard_of) != 0).sum() == 2
+
+
+# ---------------------------------------------------------------------------------------------- training
+def _state(trainer):
+    return {k: v.clone() for k, v in trainer.model.state_dict().items()}
+
+
+def test_resume_after_kill_reproduces_uninterrupted_weights(shards16, tmp_path):
+    full = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "full")
+    final_path = full.train()
+    reference = _state(full)
+
+    run = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "killed")
+    run.train(until_step=5)  # checkpoint at step 4, step 5 is lost with the "killed" process
+    assert (tmp_path / "killed" / CHECKPOINT_NAME).is_file()
+    del run
+    resumed = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "killed")
+    assert resumed.step == 4
+    resumed.train()
+    got = _state(resumed)
+    assert got.keys() == reference.keys()
+    assert all(torch.equal(got[k], reference[k]) for k in reference)
+    assert not all(torch.equal(reference[k], v) for k, v in
+                   DualPointMapNet(SMALL_MODEL).state_dict().items())  # training changed the weights
+    for a, b in zip(full.optimizer.state_dict()["state"].values(), resumed.optimizer.state_dict()["state"].values()):
+        assert torch.equal(a["exp_avg"], b["exp_avg"]) and torch.equal(a["exp_avg_sq"], b["exp_avg_sq"])
+
+    model, configs = load_predictor(final_path, device="cpu")
+    assert configs.model == SMALL_MODEL and configs.train == SMALL_TRAIN
+    assert all(torch.equal(model.state_dict()[k], reference[k]) for k in reference)
+
+
+def test_resume_rejects_a_different_config(shards16, tmp_path):
+    Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path).train(until_step=2)
+    other = TrainConfig(**{**SMALL_TRAIN.__dict__, "lr": 1e-3})
+    with pytest.raises(ValueError, match="train_config differs"):
+        Trainer(ShardDataset(shards16), SMALL_MODEL, other, tmp_path)
+
+
+def test_trainer_checks_dataset_against_model(shards16, tmp_path):
+    with pytest.raises(ValueError, match=r"dataset: expected \(H, W, K, C\) = \(32, 32, 4, 3\)"):
+        Trainer(ShardDataset(shards16), ModelConfig(resolution=32, depth=2), SMALL_TRAIN, tmp_path)
+
+
+def test_overfits_eight_samples_below_two_centimetres(tmp_path):
+    torch.set_num_threads(1)  # 1 thread is as fast on 2 shared cores and not slower when they are busy
+    write_synthetic_shards(tmp_path / "s", 8, 32, shard_size=8, seed=0, with_head=False)
+    ds = ShardDataset(tmp_path / "s")
+    model_cfg = ModelConfig(resolution=32, base_channels=16, depth=2, two_stage=False)
+    train_cfg = TrainConfig(steps=500, batch_size=8, lr=3e-3, warmup_steps=20, checkpoint_every=1000,
+                            betas=(0.9, 0.999), log_every=100)
+    trainer = Trainer(ds, model_cfg, train_cfg, tmp_path / "out")
+    batch = ds.get_batch(range(8))
+
+    def posed_error():
+        with torch.no_grad():
+            out = trainer.model(batch.features, batch.mask)
+        occ = batch.targets.occupancy
+        return (out.posed_points - batch.targets.posed_points).norm(dim=-1)[occ].mean().item()
+
+    before = posed_error()
+    trainer.train()
+    after = posed_error()
+    assert before > 0.1
+    assert after < 0.02, f"posed-map error of occupied entries {after * 100:.2f} cm after {train_cfg.steps} steps"
+
+
+# ---------------------------------------------------------------------------------------------- DDP
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_worker(rank, world, port, shards, out, result_dir):
+    import os
+
+    import torch.distributed as dist
+
+    os.environ.update({"RANK": str(rank), "WORLD_SIZE": str(world), "LOCAL_RANK": str(rank),
+                       "MASTER_ADDR": "127.0.0.1", "MASTER_PORT": str(port)})
+    torch.set_num_threads(1)
+    cfg = TrainConfig(**{**SMALL_TRAIN.__dict__, "steps": 3, "batch_size": 1, "checkpoint_every": 2})
+    trainer = Trainer(ShardDataset(shards), SMALL_MODEL, cfg, out)
+    trainer.train()
+    torch.save({k: v.clone() for k, v in trainer.model.state_dict().items()}, f"{result_dir}/rank{rank}.pt")
+    dist.destroy_process_group()
+
+
+def test_ddp_two_processes_gloo_keep_identical_weights(shards16, tmp_path):
+    mp.spawn(_ddp_worker, args=(2, _free_port(), str(shards16), str(tmp_path / "out"), str(tmp_path)), nprocs=2,
+             join=True)
+    a = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    b = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    torch.manual_seed(SMALL_TRAIN.seed)
+    init = DualPointMapNet(SMALL_MODEL).state_dict()
+    assert not all(torch.equal(a[k], init[k]) for k in a)
+    model, _ = load_predictor(tmp_path / "out" / "predictor.pt", device="cpu")
+    assert all(torch.equal(model.state_dict()[k], a[k]) for k in a)
+    ckpt = torch.load(tmp_path / "out" / CHECKPOINT_NAME, weights_only=True)
+    assert (ckpt["step"], ckpt["world_size"]) == (3, 2)
