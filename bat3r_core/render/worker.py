@@ -268,12 +268,14 @@ class BlenderRenderer:
         self.rgb_out.format.media_type = "IMAGE"  # bpy 5.0: the media type comes before the file format
         self.rgb_out.format.file_format = "PNG"
         self.rgb_out.format.color_mode = "RGB"
+        self.rgb_out.format.compression = 0  # written and read back at once: speed over size
         self.rgb_out.save_as_render = True
         self.rgb_out.file_output_items.new("RGBA", "rgb")
         self.mask_out = tree.nodes.new("CompositorNodeOutputFile")
         self.mask_out.format.media_type = "IMAGE"
         self.mask_out.format.file_format = "PNG"
         self.mask_out.format.color_mode = "BW"
+        self.mask_out.format.compression = 0
         self.mask_out.save_as_render = False
         self.mask_out.file_output_items.new("FLOAT", "mask")
         tree.links.new(rl.outputs["Image"], self.rgb_out.inputs[0])
