@@ -38,7 +38,7 @@ from bat3r_core import shards
 
 __all__ = ["ITERATION_STAGES", "RUN_STAGES", "RunLayout", "code_version", "stage_code_version", "write_manifest",
            "read_manifest", "shard_record", "ShardFailure", "FailureSummary", "TooManyFailedShards",
-           "apply_failure_policy"]
+           "apply_failure_policy", "prune_shards"]
 
 ITERATION_STAGES = ("infer", "fit", "plan", "render", "features", "train", "evaluate")
 """Stage folders inside ``iter-NN/``, in data-flow order."""
@@ -292,6 +292,23 @@ def shard_record(stage: str, index: int, paths: shards.ShardPaths) -> dict[str, 
         "content_hash": shards.content_hash(files), "n_rows": table.num_rows, "n_ok": int(ok.sum()),
         "n_failed": len(bad), "failed_samples": bad[:_MAX_LISTED_FAILURES],
     }
+
+
+def prune_shards(folder: str | os.PathLike, keep: Iterable[int]) -> list[int]:
+    """Delete the shards of ``folder`` whose index is not in ``keep`` (left by an earlier, larger plan of the same
+    run); the Parquet file goes first, so a shard never looks complete without its npz. Returns the indices
+    removed."""
+    keep = {int(k) for k in keep}
+    removed = []
+    for index in shards.list_shards(folder):
+        if index in keep:
+            continue
+        paths = shards.shard_paths(folder, index)
+        paths.parquet.unlink()
+        if paths.npz.is_file():
+            paths.npz.unlink()
+        removed.append(index)
+    return removed
 
 
 # --------------------------------------------------------------------------------------- failed-shard policy

@@ -152,3 +152,14 @@ def test_failure_policy_continues_below_limit_and_fails_above():
 def test_failure_policy_checks_inputs(n_total, failures, limit, match):
     with pytest.raises(ValueError, match=match):
         runs.apply_failure_policy("s", n_total, failures, limit)
+
+
+def test_prune_shards_removes_only_unplanned_indices(tmp_path):
+    rows = [{"sample_id": "a", "status": "ok", "reason": ""}]
+    for i in range(4):
+        shards.write_shard(tmp_path, i, rows, {"x": np.zeros(1)})
+    assert runs.prune_shards(tmp_path, keep=[0, 2]) == [1, 3]
+    assert shards.list_shards(tmp_path) == [0, 2]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["part-00000.npz", "part-00000.parquet",
+                                                          "part-00002.npz", "part-00002.parquet"]
+    assert runs.prune_shards(tmp_path / "missing", keep=[]) == []

@@ -1,0 +1,184 @@
+"""Resolve a run's settings from the data catalog, a run preset, dotted overrides and the paper's ablation switches.
+
+The result (``RunSettings``) holds one typed config per stage plus the run-level numbers; ``to_mapping()`` is the
+JSON written to ``manifest.json`` and the per-stage mappings are what the tasks receive (and hash into their cache
+keys), so a changed setting recomputes exactly the stages it reaches.
+
+Overrides are ``{"<section>.<key>[.<key>...]": value}`` with sections ``render``, ``model``, ``train``,
+``features``, ``fitting``, ``camera_prior`` (stage configs) and ``run`` (fields of the run preset, e.g.
+``run.canonical_samples``), plus the top-level ``shard_size`` and ``max_failed_fraction``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+from bat3r_core.catalog import Catalog, load_catalog
+from bat3r_core.config_utils import ConfigError, replace_path, to_mapping
+from bat3r_core.fitting.config import FittingConfig
+from bat3r_core.predictor.config import ModelConfig, TrainConfig
+from bat3r_core.predictor.features import FeatureConfig
+from bat3r_core.render.config import RenderConfig, SceneAssets
+from bat3r_core.runs import RunLayout
+from bat3r_core.viewpoints import AnglePrior, CameraPriorConfig, ViewTypePrior
+
+__all__ = ["Ablations", "RunSettings", "resolve_run"]
+
+_SECTIONS = ("render", "model", "train", "features", "fitting", "camera_prior", "run")
+
+
+@dataclass(frozen=True)
+class Ablations:
+    """The paper's ablation switches (all off = the method).
+
+    Attributes:
+        gaussian_cameras: sample viewpoints from Normal priors instead of Student's t (same loc and scale per
+            view type, no df).
+        no_fitting_regularisation: zero the angle, edge, volume, repulsion and scale weights of the mesh fit.
+        no_view_augmentation: render only the estimated view of each fit (no augmented views).
+        random_poses: the random-poses baseline (training images of random poses instead of fitted ones).
+        raw_images: the raw-image baseline (train on the collection images with the fitted pseudo-labels,
+            without re-rendering).
+    """
+
+    gaussian_cameras: bool = False
+    no_fitting_regularisation: bool = False
+    no_view_augmentation: bool = False
+    random_poses: bool = False
+    raw_images: bool = False
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """Everything a bootstrap run needs, resolved (see the module docstring)."""
+
+    layout: RunLayout
+    category: str
+    preset: str
+    iterations: int
+    image_size: int
+    layers: int
+    shard_size: int
+    canonical_samples: int
+    collection_size: int
+    test_size: int
+    views_per_fit_max: int
+    max_failed_fraction: float
+    render: RenderConfig
+    model: ModelConfig
+    train: TrainConfig
+    features: FeatureConfig
+    fitting: FittingConfig
+    camera_prior: CameraPriorConfig
+    assets: SceneAssets
+    body_frame: dict[str, Any]
+    collection: dict[str, Any]
+    test_split: dict[str, Any] | None
+    ablations: Ablations
+
+    def to_mapping(self) -> dict[str, Any]:
+        """JSON-serialisable form (for ``manifest.json``)."""
+        out = {f.name: to_mapping(getattr(self, f.name)) for f in dataclasses.fields(self) if f.name != "layout"}
+        out["run_dir"] = str(self.layout.root)
+        return out
+
+
+def _gaussian(prior: CameraPriorConfig) -> CameraPriorConfig:
+    def normal(p: AnglePrior | None) -> AnglePrior | None:
+        return None if p is None else AnglePrior(loc=p.loc, scale=p.scale)
+
+    table = {k: ViewTypePrior(normal(v.elevation), normal(v.roll)) for k, v in (prior.per_view_type or {}).items()}
+    return dataclasses.replace(prior, distribution="normal", elevation=normal(prior.elevation),
+                               roll=normal(prior.roll), per_view_type=table or None)
+
+
+def _texture(catalog_dir: Path, t: str) -> str:
+    if t.startswith("procedural:"):
+        return "toy:" + t.split(":", 1)[1]
+    p = Path(os.path.expanduser(t))
+    return str(p if p.is_absolute() else catalog_dir / p)
+
+
+def _collection(cat, spec, size: int, resolution: int, generated_seed_offset: int = 0) -> dict[str, Any] | None:
+    if spec is None:
+        return None
+    path = cat.resolve(spec.path)
+    if spec.kind != "generated":
+        return {"kind": spec.kind, "path": str(path)}
+    n = spec.n or size
+    tag = f"n{n}-r{resolution}"  # one cached collection per size, so presets do not overwrite each other
+    gt = cat.resolve(spec.ground_truth) if spec.ground_truth else path.parent / f"{path.name}_ground_truth"
+    return {"kind": "generated", "path": str(path / tag), "ground_truth": str(gt / tag), "n": n,
+            "seed": spec.seed + generated_seed_offset}
+
+
+def _split_overrides(overrides: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    out: dict[str, dict[str, Any]] = {s: {} for s in _SECTIONS}
+    out["top"] = {}
+    for key, value in overrides.items():
+        if key in ("shard_size", "max_failed_fraction"):
+            out["top"][key] = value
+            continue
+        section, _, rest = str(key).partition(".")
+        if section not in _SECTIONS or not rest:
+            raise ConfigError(f"override '{key}': expected '<section>.<key>' with section one of "
+                              f"{list(_SECTIONS)}, or 'shard_size' / 'max_failed_fraction'")
+        out[section][rest] = value
+    return out
+
+
+def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[str, Any] | None = None,
+                ablations: Ablations | Mapping[str, bool] | None = None, catalog: Catalog | None = None,
+                max_failed_fraction: float = 0.1) -> RunSettings:
+    """The settings of run ``run_name`` of ``category`` at run preset ``preset`` (see the module docstring)."""
+    catalog = catalog or load_catalog()
+    cat = catalog.category(category)
+    if isinstance(ablations, Mapping):
+        from bat3r_core.config_utils import from_mapping
+
+        ablations = from_mapping(Ablations, ablations, "ablations")
+    ablations = ablations or Ablations()
+    ov = _split_overrides(dict(overrides or {}))
+    run = catalog.run_preset(preset)
+    for key, value in ov["run"].items():
+        run = replace_path(run, key, value)
+    render = catalog.render_config(preset)
+    model = catalog.model_config(preset)
+    train = catalog.train_config(preset)
+    fitting = catalog.fitting_config(category, preset)
+    prior = catalog.camera_prior_config(category)
+    features = FeatureConfig(extractor=run.features,
+                             cache_dir=str(catalog.storage() / "_cache" / "features" / category))
+    configs = {"render": render, "model": model, "train": train, "features": features, "fitting": fitting,
+               "camera_prior": prior}
+    for section in configs:
+        for key, value in ov[section].items():
+            configs[section] = replace_path(configs[section], key, value)
+    if ablations.gaussian_cameras:
+        configs["camera_prior"] = _gaussian(configs["camera_prior"])
+    if ablations.no_fitting_regularisation:
+        configs["fitting"] = dataclasses.replace(configs["fitting"], weight_angle=0.0, weight_edge=0.0,
+                                                 weight_volume=0.0, weight_repulsion=0.0, weight_scale=0.0)
+    shard_size = int(ov["top"].get("shard_size", catalog.shard_size))
+    mff = float(ov["top"].get("max_failed_fraction", max_failed_fraction))
+    if shard_size < 1:
+        raise ConfigError(f"shard_size: must be >= 1, got {shard_size}")
+    if not 0.0 <= mff <= 1.0:
+        raise ConfigError(f"max_failed_fraction: must be in [0, 1], got {mff}")
+    asset = catalog.asset_path(category)
+    assets = SceneAssets(asset=str(asset), textures=tuple(_texture(catalog.root, t) for t in cat.textures)
+                         or SceneAssets("").textures,
+                         envmaps=tuple(str(cat.resolve(e)) for e in cat.environment_maps))
+    bf = cat.body_frame
+    return RunSettings(
+        layout=RunLayout(catalog.storage(), category, run_name), category=category, preset=preset,
+        iterations=run.iterations, image_size=run.image_size, layers=catalog.layers, shard_size=shard_size,
+        canonical_samples=run.canonical_samples, collection_size=run.collection_size, test_size=run.test_size,
+        views_per_fit_max=run.views_per_fit_max, max_failed_fraction=mff, assets=assets,
+        body_frame={"origin": bf.origin, "forward": list(bf.forward), "horizontal": list(bf.horizontal)},
+        collection=_collection(cat, cat.collection, run.collection_size, run.image_size),
+        test_split=_collection(cat, cat.test_split, run.test_size, run.image_size),
+        ablations=ablations, **configs)

@@ -1,0 +1,59 @@
+"""``evaluate`` flow: recompute a run's ``metrics.parquet`` from its ``iter-NN/evaluate`` shards, rebuild
+``report.html`` and publish the metrics table artifact.
+
+Local run: ``python flows/evaluate.py --category toy --run-name tiny``.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script or loaded by path (deployments): make the project root importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from typing import Any
+
+from prefect import flow
+from prefect.artifacts import create_table_artifact
+
+from bat3r_core.catalog import load_catalog
+from bat3r_core.runs import RunLayout
+from flows._artifacts import METRIC_COLUMNS
+from flows._fanout import artifact_key
+from tasks._cache import for_run, record_is_intact
+from tasks.evaluate import build_report, update_metrics
+
+__all__ = ["evaluate"]
+
+
+@flow(name="evaluate", flow_run_name="{category}-{run_name}-evaluate")
+def evaluate(category: str = "toy", run_name: str = "tiny", storage_root: str | None = None) -> dict[str, Any]:
+    """Metrics and report of run ``<storage root>/<category>/<run name>`` (storage root: the catalog's).
+    Returns ``{"rows": metrics rows (NaN as None), "report": path of report.html}``."""
+    root = Path(storage_root) if storage_root else load_catalog().storage()
+    layout = RunLayout(root, category, run_name)
+    if not layout.root.is_dir():
+        raise FileNotFoundError(f"run folder {layout.root} does not exist")
+    metrics = for_run(update_metrics, layout)(str(layout.root), {})
+    if not record_is_intact(metrics):  # a cached record whose metrics.parquet was deleted or changed since
+        metrics = for_run(update_metrics, layout, refresh_cache=True)(str(layout.root), {})
+    report = build_report(str(layout.root))
+    if metrics["rows"]:
+        create_table_artifact(table=[{c: r.get(c) for c in METRIC_COLUMNS} for r in metrics["rows"]],
+                              key=artifact_key(category, run_name, "metrics"),
+                              description=f"metrics.parquet of {layout.root}")
+    return {"rows": metrics["rows"], "report": report}
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Recompute a run's metrics and report.")
+    parser.add_argument("--category", default="toy")
+    parser.add_argument("--run-name", default="tiny")
+    parser.add_argument("--storage-root", default=None)
+    args = parser.parse_args()
+    out = evaluate(args.category, args.run_name, args.storage_root)
+    print(f"report: {out['report']}")
+    for row in out["rows"]:
+        print(row)

@@ -1,0 +1,81 @@
+"""``toy_collection`` flow: a category's image collection and test split → preprocessed shards of a run.
+
+For a generated category (the embedded ``toy``) the images are rendered first (Blender, cached by their
+parameters); for a user's folder/Parquet collection they are listed. Either way the images are cropped around
+their masks into ``<run>/collection`` and ``<run>/test`` shards at the model resolution (the predictor's input).
+
+Local run: ``python flows/toy_collection.py --category toy --preset tiny``.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if __package__ in (None, ""):  # run as a script or loaded by path (deployments): make the project root importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from typing import Any
+
+from prefect import flow
+
+from bat3r_core.config_utils import to_mapping
+from bat3r_core.predictor.collection import CollectionConfig, list_collection, plan_shards
+from flows._fanout import StageResult, artifact_key, run_stage
+from flows._settings import RunSettings, resolve_run
+from tasks._cache import for_run
+from tasks.predict import ingest_collection_shard
+from tasks.render import render_toy_collection
+
+__all__ = ["toy_collection", "prepare_split"]
+
+
+def prepare_split(settings: RunSettings, split: str, spec: dict[str, Any]) -> list[StageResult]:
+    """Render (generated collections) and ingest one split (``collection`` or ``test``) of a run."""
+    layout = settings.layout
+    results = []
+    folder = Path(spec["path"])
+    if spec["kind"] == "generated":
+        cfg = {"n": spec["n"], "seed": spec["seed"], "resolution": settings.image_size,
+               "render": to_mapping(settings.render), "ground_truth_dir": spec["ground_truth"]}
+        rendered = run_stage(f"{split}-images", for_run(render_toy_collection, layout),
+                             [{"out_dir": str(folder), "config": cfg}],
+                             progress_key=artifact_key(layout.category, layout.run_name, split, "images"),
+                             max_failed_fraction=0.0)
+        results.append(rendered)
+    samples = [{"sample_id": s.sample_id, "image_path": str(s.image_path),
+                "mask_path": "" if s.mask_path is None else str(s.mask_path)}
+               for s in list_collection(folder)]
+    ccfg = CollectionConfig(resolution=settings.image_size, shard_size=settings.shard_size)
+    chunks = plan_shards(samples, ccfg.shard_size)
+    out_dir = layout.run_stage_dir(split)
+    calls = [{"samples": chunk, "index": i, "out_dir": str(out_dir), "config": to_mapping(ccfg)}
+             for i, chunk in enumerate(chunks)]
+    results.append(run_stage(split, for_run(ingest_collection_shard, layout), calls,
+                             progress_key=artifact_key(layout.category, layout.run_name, split),
+                             max_failed_fraction=settings.max_failed_fraction))
+    return results
+
+
+@flow(name="toy_collection", flow_run_name="{category}-{run_name}-collections")
+def toy_collection(category: str = "toy", preset: str = "tiny", run_name: str | None = None,
+                   overrides: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Prepare the training collection and the test split of run ``run_name`` (default: the preset name).
+    Returns ``{split: [stage records]}``."""
+    settings = resolve_run(category, preset, run_name or preset, overrides)
+    settings.layout.create()
+    out: dict[str, Any] = {}
+    for split, spec in (("collection", settings.collection), ("test", settings.test_split)):
+        if spec is not None:
+            out[split] = [list(r.records) for r in prepare_split(settings, split, spec)]
+    return out
+
+
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Prepare a category's collection and test split for a run.")
+    parser.add_argument("--category", default="toy")
+    parser.add_argument("--preset", default="tiny")
+    parser.add_argument("--run-name", default=None)
+    args = parser.parse_args()
+    toy_collection(args.category, args.preset, args.run_name)

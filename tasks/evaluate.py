@@ -1,0 +1,43 @@
+"""Evaluate stage, run-level part: ``metrics.parquet`` from the per-sample evaluation shards, and ``report.html``."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from prefect import task
+
+from bat3r_core import evaluation, report, shards
+from tasks._cache import shard_input_files, stage_task
+
+__all__ = ["update_metrics", "build_report", "evaluation_inputs"]
+
+
+def evaluation_inputs(run_dir: str) -> list[Path]:
+    """Every file of the complete ``iter-NN/evaluate`` shards of a run, in iteration and shard order."""
+    out = []
+    for _, it_dir in evaluation.iteration_dirs(run_dir):
+        stage = it_dir / "evaluate"
+        out += [f for i in shards.list_shards(stage) for f in shard_input_files(stage, i)]
+    return out
+
+
+def _metrics_file(run_dir: str) -> Path:
+    return Path(run_dir) / "metrics.parquet"
+
+
+@stage_task("metrics", "bat3r_core.evaluation", inputs=lambda p: evaluation_inputs(p["run_dir"]),
+            output=lambda p: _metrics_file(p["run_dir"]))
+def update_metrics(run_dir: str, config: dict | None = None) -> dict:
+    """Recompute ``run_dir/metrics.parquet`` from every ``iter-NN/evaluate`` shard
+    (``bat3r_core.evaluation.evaluate_run``). Returns ``stage, files, content_hash, rows`` (the metrics rows, NaN as None)."""
+    path = evaluation.evaluate_run(run_dir)
+    rows = [{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()}
+            for r in evaluation.read_metrics(run_dir).to_pylist()]
+    return {"stage": "metrics", "files": [str(path)], "content_hash": shards.content_hash([path]), "rows": rows}
+
+
+@task(name="report", retries=1, retry_delay_seconds=2)
+def build_report(run_dir: str) -> str:
+    """Rebuild ``run_dir/report.html`` (``bat3r_core.report.build_report``; never cached: it is cheap and reads the
+    whole run). Returns its path."""
+    return str(report.build_report(run_dir))

@@ -1,0 +1,43 @@
+"""Plan stage: render jobs. Iteration 0 samples cameras around the rest-pose mesh (``canonical``); the random-poses
+baseline samples random poses (``random_pose``). Jobs are written as ``part-NNNNN.parquet`` job files, one per
+render shard."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+from bat3r_core import datasets, shards
+from bat3r_core.config_utils import from_mapping
+from bat3r_core.render.jobs import write_jobs
+from bat3r_core.rig_io import load_rig
+from bat3r_core.viewpoints import CameraPriorConfig
+from tasks._cache import stage_task
+
+__all__ = ["plan_sampled_jobs"]
+
+_BUILDERS = {"canonical": datasets.canonical_jobs, "random_pose": datasets.random_pose_jobs}
+
+
+@stage_task("plan", "bat3r_core.datasets", inputs=lambda p: [Path(p["asset"])], output=lambda p: Path(p["out_dir"]))
+def plan_sampled_jobs(asset: str, out_dir: str, config: Mapping[str, Any]) -> dict:
+    """Sample render jobs around the rig of ``asset`` and write them to ``out_dir/part-NNNNN.parquet``.
+
+    config: ``{"kind": "canonical" | "random_pose", "n", "seed", "resolution", "shard_size", "body_frame":
+    {origin, forward, horizontal}, "prior": CameraPriorConfig mapping, "num_textures", "num_envmaps"}``
+    (``bat3r_core.datasets.canonical_jobs`` / ``random_pose_jobs``; the job builders are pure, the task writes
+    their output). Returns ``stage, files, content_hash, n_jobs, n_shards``.
+    """
+    kind = config["kind"]
+    if kind not in _BUILDERS:
+        raise ValueError(f"config.kind must be one of {sorted(_BUILDERS)}, got {kind!r}")
+    shard_size = int(config["shard_size"])
+    if shard_size < 1:
+        raise ValueError(f"config.shard_size must be >= 1, got {shard_size}")
+    prior = from_mapping(CameraPriorConfig, config["prior"], "prior")
+    jobs = _BUILDERS[kind](load_rig(asset), int(config["n"]), int(config["seed"]), dict(config["body_frame"]),
+                           prior, resolution=int(config["resolution"]), num_textures=int(config["num_textures"]),
+                           num_envmaps=int(config["num_envmaps"]), prefix=kind)
+    files = [write_jobs(jobs[s:s + shard_size], Path(out_dir) / f"{shards.shard_name(i)}.parquet")
+             for i, s in enumerate(range(0, len(jobs), shard_size))]
+    return {"stage": "plan", "files": [str(f) for f in files], "content_hash": shards.content_hash(files),
+            "n_jobs": len(jobs), "n_shards": len(files)}

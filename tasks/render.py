@@ -1,0 +1,61 @@
+"""Render stage: one shard of render jobs → one training shard (Blender in worker subprocesses, exact labels);
+and the toy image collection."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+from bat3r_core import datasets, shards
+from bat3r_core.config_utils import from_mapping
+from bat3r_core.render import runner
+from bat3r_core.render.config import RenderConfig, SceneAssets
+from bat3r_core.render.jobs import read_jobs
+from bat3r_core.runs import shard_record
+from tasks._cache import stage_task
+from tasks._devices import gpu_slot
+
+__all__ = ["render_shard", "render_toy_collection", "asset_files"]
+
+
+def asset_files(assets: Mapping[str, Any]) -> list[Path]:
+    """The files of a ``SceneAssets`` mapping that exist (procedural ``toy:`` textures have none)."""
+    names = [assets.get("asset", "")] + list(assets.get("textures", ())) + list(assets.get("envmaps", ()))
+    return [Path(n) for n in names if n and Path(n).is_file()]
+
+
+@stage_task("render", "bat3r_core.render.runner",
+            inputs=lambda p: [Path(p["jobs_file"])] + asset_files(p["config"]["assets"]),
+            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]),
+            retries=2, gpu=True, task_run_name="render-{index}")
+def render_shard(jobs_file: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
+    """Render the jobs of ``jobs_file`` (a render-job Parquet file) as training shard ``index`` of ``out_dir``
+    (``bat3r_core.render.runner.render_shard``). config: ``{"render": RenderConfig mapping, "assets":
+    SceneAssets mapping}``. On a GPU machine the worker is pinned to a free device (one shard per GPU).
+    Returns the shard record plus ``processes``, ``crashes`` and ``seconds``."""
+    cfg = from_mapping(RenderConfig, config["render"], "render")
+    assets = from_mapping(SceneAssets, config["assets"], "assets")
+    jobs = read_jobs(jobs_file)
+    with gpu_slot() as device:
+        result = runner.render_shard(jobs, assets, out_dir, index, cfg,
+                                     gpu_index=device if cfg.device != "CPU" else None)
+    record = shard_record("render", index, shards.shard_paths(out_dir, index))
+    record.update(processes=result.processes, crashes=result.crashes, seconds=round(result.seconds, 3))
+    return record
+
+
+@stage_task("toy_collection", "bat3r_core.datasets", inputs=lambda p: [],
+            output=lambda p: Path(p["out_dir"]), retries=1)
+def render_toy_collection(out_dir: str, config: Mapping[str, Any]) -> dict:
+    """The toy image collection in ``out_dir`` (``images/``, ``masks/``) and its ground truth in
+    ``config["ground_truth_dir"]`` (default ``<out_dir>_ground_truth``) with
+    ``bat3r_core.datasets.ensure_toy_collection`` (reused when already there).
+    config: ``{"n", "seed", "resolution", "render": RenderConfig mapping, "ground_truth_dir": path or None}``.
+    Returns ``stage, images_dir, masks_dir, ground_truth_dir, n_images, reused, files, content_hash``."""
+    cfg = from_mapping(RenderConfig, config["render"], "render")
+    gt = config.get("ground_truth_dir")
+    col = datasets.ensure_toy_collection(out_dir, int(config["n"]), int(config["seed"]), int(config["resolution"]),
+                                         cfg, ground_truth_dir=gt)
+    stamp = col.ground_truth_dir / "collection.json"
+    return {"stage": "toy_collection", "images_dir": str(col.images_dir), "masks_dir": str(col.masks_dir),
+            "ground_truth_dir": str(col.ground_truth_dir), "n_images": len(col.sample_ids), "reused": col.reused,
+            "files": [str(stamp)], "content_hash": shards.content_hash([stamp])}

@@ -1,0 +1,47 @@
+"""Train stage: one predictor Φ_{i+1} on an iteration's training shards (resumes from its checkpoint)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+from bat3r_core import shards
+from bat3r_core.config_utils import from_mapping
+from bat3r_core.predictor import train as training
+from bat3r_core.predictor.config import ModelConfig, TrainConfig
+from bat3r_core.predictor.data import ShardDataset
+from bat3r_core.predictor.features import FeatureConfig, make_feature_fn
+from tasks._cache import shard_input_files, stage_task
+from tasks._devices import gpu_slot
+
+__all__ = ["train_model", "training_inputs"]
+
+
+def training_inputs(shards_dir: str) -> list[Path]:
+    """Every file of the complete shards of ``shards_dir``, in shard order."""
+    return [f for i in shards.list_shards(shards_dir) for f in shard_input_files(shards_dir, i)]
+
+
+@stage_task("train", "bat3r_core.predictor.train", inputs=lambda p: training_inputs(p["shards_dir"]),
+            output=lambda p: Path(p["out_dir"]), retries=1, gpu=True)
+def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dict:
+    """Train the predictor on the training shards of ``shards_dir`` into ``out_dir`` (``predictor.pt``,
+    ``checkpoint.pt``, ``train_log.jsonl``). A killed task resumes from ``checkpoint.pt`` on its retry or rerun.
+
+    config: ``{"model": ModelConfig, "train": TrainConfig, "features": FeatureConfig}`` mappings.
+    Adapted from ``bat3r_core.predictor.train.train_predictor`` (same two calls) to pass the GPU this task holds:
+    ``train_predictor`` has no device argument. Returns ``stage, predictor, files, content_hash, steps,
+    final_loss`` (the last logged total loss).
+    """
+    model_cfg = from_mapping(ModelConfig, config["model"], "model")
+    train_cfg = from_mapping(TrainConfig, config["train"], "train")
+    feature_cfg = from_mapping(FeatureConfig, config["features"], "features")
+    dataset = ShardDataset(shards_dir, make_feature_fn(feature_cfg), cache_shards=train_cfg.shuffle_shards)
+    with gpu_slot() as device:
+        path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
+                                device=None if device is None else f"cuda:{device}").train()
+    log = Path(out_dir) / "train_log.jsonl"
+    last = json.loads(log.read_text().splitlines()[-1]) if log.is_file() and log.read_text().strip() else {}
+    return {"stage": "train", "predictor": str(path), "files": [str(path)],
+            "content_hash": shards.content_hash([path]), "steps": train_cfg.steps,
+            "final_loss": last.get("total"), "n_samples": len(dataset)}
