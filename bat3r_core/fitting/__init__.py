@@ -1,0 +1,6 @@
+"""Mesh fitting of the rigged canonical mesh to predicted dual point clouds, camera recovery and viewpoint
+augmentation (see docs/fitting.md)."""
+from .config import PRESETS, FittingConfig, preset
+from .fit import FitResult, FittingAsset, PointCloudInstance, fit_batch
+
+__all__ = ["FittingConfig", "PRESETS", "preset", "FittingAsset", "PointCloudInstance", "FitResult", "fit_batch"]

@@ -1,0 +1,142 @@
+"""Configuration of the mesh-fitting stage: one frozen dataclass and the paper's two presets as data.
+
+The data catalog loads a preset (optionally with overrides) through ``config_utils.from_mapping``; the presets
+below hold the values of the paper's supplement and of REFERENCE.md.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+from bat3r_core.config_utils import ConfigError, from_mapping
+
+__all__ = ["FittingConfig", "PRESETS", "preset", "HORSE_LENGTH_M"]
+
+HORSE_LENGTH_M = 2.7
+"""Length (longest rest-pose bounding-box side, metres) of the horse the reference thresholds were set for."""
+
+
+@dataclass(frozen=True)
+class FittingConfig:
+    """Mesh fitting of the rigged canonical mesh to one predicted dual point cloud per image.
+
+    Attributes:
+        steps: Adam steps (200 synthetic, 300 real).
+        lr_rotations: learning rate of the excess rotations θ (2e-2).
+        lr_bone_scales: learning rate of the log bone scales (2e-2).
+        lr_global: learning rate of the global similarity (axis-angle delta, translation, log scale) (1e-3).
+        rotation_lr_halving_steps: θ's learning rate is halved every this many steps (100).
+        huber_delta: δ of the Huber data term, metres (0.1).
+        weight_angle, weight_edge, weight_volume, weight_repulsion, weight_scale: λ of Eq. 3.
+        warmup: start the angle, edge and volume weights at ``warmup_factor`` times and decay them linearly to
+            1x over ``warmup_steps`` steps (the reference warm-up).
+        warmup_factor: initial multiplier of the warm-up (10).
+        warmup_steps: length of the warm-up in steps (25).
+        inlier_distance: a predicted canonical point is an inlier only if its nearest canonical vertex is closer
+            than this, metres (reference: 0.1 horse, 0.05 other categories).
+        min_confidence: and its confidence ``C`` is at least this (2). Points without confidence pass.
+        num_control_points: control points kept by farthest point sampling (200; 300 elephant).
+        repulsion_geodesic_threshold: vertex pairs further apart than this on the canonical surface may repel,
+            metres, for an asset of length ``repulsion_reference_length`` (reference: 0.5 m for the 2.7 m horse).
+        repulsion_reference_length: the threshold is scaled by (asset length / this), the asset length being the
+            longest side of its rest bounding box; 0 uses the threshold as an absolute distance. For the 2.36 m
+            toy the default gives 0.5 · 2.36 / 2.7 = 0.44 m.
+        repulsion_k: nearest neighbours per vertex considered for repulsion (100).
+        repulsion_radius: r of ``relu(r² − d²)²``, metres (0.05).
+        repulsion_refresh_steps: the repulsion candidate pairs (k-NN in the posed state) are recomputed every this
+            many steps; pairs are searched within ``2 r`` so motion between refreshes is covered.
+        bone_scale_bounds: bone scales are clamped to this range ([0.5, 2]).
+        enable_bone_scales: optimise per-bone scales S (False for synthetic images).
+        fit_root_rotation: optimise the root joint's excess rotation too (it overlaps the global rotation; the
+            angle penalty keeps it small).
+        regulariser_max_vertices: the edge, volume and repulsion terms run on a quadric-decimated proxy of the
+            mesh with about this many vertices when the rig has more (0: always the full mesh). Exact full-mesh
+            terms cost about 3x more per step for the 4.8K-vertex toy (docs/fitting.md).
+        min_valid_points: instances with fewer inlier points are recorded with status ``too_few_points``.
+        seed: seed of the random FPS start points.
+    """
+
+    steps: int = 200
+    lr_rotations: float = 2e-2
+    lr_bone_scales: float = 2e-2
+    lr_global: float = 1e-3
+    rotation_lr_halving_steps: int = 100
+    huber_delta: float = 0.1
+    weight_angle: float = 1e-5
+    weight_edge: float = 100.0
+    weight_volume: float = 20.0
+    weight_repulsion: float = 1.0
+    weight_scale: float = 0.0
+    warmup: bool = True
+    warmup_factor: float = 10.0
+    warmup_steps: int = 25
+    inlier_distance: float = 0.1
+    min_confidence: float = 2.0
+    num_control_points: int = 200
+    repulsion_geodesic_threshold: float = 0.5
+    repulsion_reference_length: float = HORSE_LENGTH_M
+    repulsion_k: int = 100
+    repulsion_radius: float = 0.05
+    repulsion_refresh_steps: int = 10
+    bone_scale_bounds: tuple[float, float] = (0.5, 2.0)
+    enable_bone_scales: bool = False
+    fit_root_rotation: bool = True
+    regulariser_max_vertices: int = 1500
+    min_valid_points: int = 30
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        positive_ints = ("steps", "rotation_lr_halving_steps", "num_control_points", "repulsion_k",
+                         "repulsion_refresh_steps", "min_valid_points")
+        for name in positive_ints:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ConfigError(f"FittingConfig.{name} must be an int >= 1, got {v!r}")
+        rmv = self.regulariser_max_vertices
+        if isinstance(rmv, bool) or not isinstance(rmv, int) or rmv < 0 or 0 < rmv < 4:
+            raise ConfigError(f"FittingConfig.regulariser_max_vertices must be 0 or an int >= 4, got {rmv!r}")
+        if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            raise ConfigError(f"FittingConfig.warmup_steps must be an int >= 0, got {self.warmup_steps!r}")
+        for name in ("lr_rotations", "lr_bone_scales", "lr_global", "huber_delta", "inlier_distance",
+                     "repulsion_radius", "repulsion_geodesic_threshold"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"FittingConfig.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("weight_angle", "weight_edge", "weight_volume", "weight_repulsion", "weight_scale",
+                     "min_confidence", "repulsion_reference_length"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"FittingConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.warmup_factor >= 1:
+            raise ConfigError(f"FittingConfig.warmup_factor must be >= 1, got {self.warmup_factor!r}")
+        lo, hi = self.bone_scale_bounds
+        if not 0 < lo <= 1 <= hi:
+            raise ConfigError(f"FittingConfig.bone_scale_bounds must satisfy 0 < lo <= 1 <= hi, got "
+                              f"{self.bone_scale_bounds}")
+
+    def geodesic_threshold_for(self, asset_length: float) -> float:
+        """The repulsion geodesic threshold in metres for an asset whose longest rest extent is ``asset_length``."""
+        if self.repulsion_reference_length == 0:
+            return self.repulsion_geodesic_threshold
+        return self.repulsion_geodesic_threshold * float(asset_length) / self.repulsion_reference_length
+
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "synthetic": {
+        "steps": 200, "weight_angle": 1e-5, "weight_edge": 100.0, "weight_volume": 20.0, "weight_repulsion": 1.0,
+        "weight_scale": 0.0, "enable_bone_scales": False,
+    },
+    "real": {
+        "steps": 300, "weight_angle": 3e-5, "weight_edge": 3000.0, "weight_volume": 20.0, "weight_repulsion": 5.0,
+        "weight_scale": 0.01, "enable_bone_scales": True,
+    },
+}
+"""The paper's presets (supplement, 'Mesh fitting and regularization'); every other field keeps its default."""
+
+
+def preset(name: str, overrides: Mapping[str, Any] | None = None) -> FittingConfig:
+    """The :class:`FittingConfig` of preset ``name`` (``synthetic`` or ``real``) with optional ``overrides``
+    (a mapping of field names, e.g. ``{"inlier_distance": 0.05}``), validated strictly."""
+    if name not in PRESETS:
+        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
+    data = dict(PRESETS[name])
+    data.update(overrides or {})
+    return from_mapping(FittingConfig, data, f"fitting.{name}")

@@ -1,0 +1,416 @@
+"""Batched fitting of the rigged canonical mesh to predicted dual point clouds (the paper's mesh fitting).
+
+Per instance (one image): nearest-vertex correspondences and inliers (:mod:`.correspondences`), FPS to control
+points under the surface metric (:mod:`.sampling`), a robust Kabsch–Umeyama similarity from the assigned rest
+vertices to the predicted posed points, then Adam over the excess rotations θ, log bone scales and the global
+similarity (axis-angle delta ω on the initial rotation, ``R = R(ω) @ R0``; translation; log scale), with the
+paper's learning rates and schedule. Instances are independent: every loss is per instance and summed over the
+batch, and Adam is elementwise, so a batch gives the same numbers as fitting its instances one at a time.
+
+Frames: predicted posed points are camera-frame points relative to the object depth (docs/CONVENTIONS.md), so the
+fitted global similarity maps the canonical frame into that frame. The world of the fitted scene is the canonical
+frame (the mesh posed by θ with unit bone scales); the camera rotation is the global rotation and its translation
+is recovered from layer-0 pixels (:mod:`.camera`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from bat3r_core.metrics import rms_chamfer, umeyama
+from bat3r_core.rig import Rig
+from bat3r_core.skinning import RigTensors, axis_angle_to_matrix, forward_kinematics
+
+from .camera import CameraEstimate, recover_camera
+from .config import FittingConfig
+from .correspondences import VertexIndex
+from .geodesics import load_or_compute_geodesics
+from .losses import MeshRegularisers, RegulariserMesh, regulariser_mesh, angle_term, data_term, find_repulsion_pairs, repulsion_term, scale_term
+from .sampling import farthest_point_sampling
+
+__all__ = ["FittingAsset", "PointCloudInstance", "FitResult", "fit_batch", "LOSS_NAMES", "STATUS_TOO_FEW",
+           "STATUS_BAD_INPUT"]
+
+LOSS_NAMES = ("data", "angle", "edge", "volume", "repulsion", "scale", "total")
+STATUS_TOO_FEW = "too_few_points"
+STATUS_BAD_INPUT = "bad_input"
+_INIT_IRLS_ITERATIONS = 3
+
+
+@dataclass(frozen=True, eq=False)
+class FittingAsset:
+    """Everything about one rigged canonical mesh that fitting precomputes once (see :meth:`prepare`).
+
+    Attributes:
+        rig: the rig. tensors: its skinning tensors on ``device``.
+        reg_mesh: the mesh of the edge/volume/repulsion terms (the rig's, or a decimated proxy).
+        reg_tensors: skinning tensors of ``reg_mesh``. regularisers: its edge/volume constants.
+        geodesics: (V, V) float32 metres between rig vertices. reg_geodesics: (Vr, Vr) the same for ``reg_mesh``.
+        vertex_index: KD-tree over the rest vertices.
+        geodesic_threshold: repulsion geodesic threshold for this asset, metres.
+        left_right: (P, 2) int64 left/right joint pairs. device, dtype: of the tensors.
+    """
+
+    rig: Rig
+    tensors: RigTensors
+    reg_mesh: RegulariserMesh
+    reg_tensors: RigTensors
+    regularisers: MeshRegularisers
+    geodesics: np.ndarray
+    reg_geodesics: np.ndarray
+    vertex_index: VertexIndex
+    geodesic_threshold: float
+    left_right: torch.Tensor
+    device: torch.device
+    dtype: torch.dtype
+
+    @staticmethod
+    def prepare(rig: Rig, config: FittingConfig, cache_dir=None, device: str | torch.device = "cpu",
+                dtype: torch.dtype = torch.float32) -> "FittingAsset":
+        """Precompute (and cache, see :func:`~.geodesics.load_or_compute_geodesics`) what fitting ``rig`` needs."""
+        if not isinstance(rig, Rig):
+            raise TypeError(f"rig must be a bat3r_core.rig.Rig, got {type(rig).__name__}")
+        device = torch.device(device)
+        geo = load_or_compute_geodesics(rig.rest_vertices, rig.faces, cache_dir)
+        length = float(np.ptp(rig.rest_vertices, axis=0).max())
+        pairs = np.asarray(rig.left_right_pairs, dtype=np.int64).reshape(-1, 2)
+        reg_mesh = regulariser_mesh(rig.rest_vertices, rig.faces, rig.skin_weights, config.regulariser_max_vertices)
+        src = reg_mesh.source_vertex
+        return FittingAsset(rig=rig, tensors=rig.tensors(dtype=dtype, device=device), reg_mesh=reg_mesh,
+                            reg_tensors=RigTensors.from_arrays(reg_mesh.rest_vertices, rig.parents,
+                                                               rig.rest_transforms, reg_mesh.skin_weights,
+                                                               dtype=dtype, device=device),
+                            regularisers=MeshRegularisers.from_mesh(reg_mesh.rest_vertices, reg_mesh.faces,
+                                                                    reg_mesh.skin_weights, dtype=dtype, device=device),
+                            geodesics=geo, reg_geodesics=np.ascontiguousarray(geo[np.ix_(src, src)]),
+                            vertex_index=VertexIndex(rig.rest_vertices),
+                            geodesic_threshold=config.geodesic_threshold_for(length),
+                            left_right=torch.as_tensor(pairs, device=device), device=device, dtype=dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class PointCloudInstance:
+    """One image's predicted dual point cloud.
+
+    Attributes:
+        sample_id: identifier of the image.
+        posed_points: (N, 3) metres, camera frame relative to the object depth (``P − (0, 0, object_depth)``).
+        canonical_points: (N, 3) metres, canonical frame.
+        confidence: (N,) ``C = 1 + exp(c)`` or None.
+        pixels: (N, 2) pixel coordinates ``(u, v)`` of each point or None (no camera translation then).
+        layers: (N,) int layer of each point (0 = front) or None (all treated as layer 0).
+        intrinsics: (3, 3) pixels or None. image_size: (width, height) or None.
+    """
+
+    sample_id: str
+    posed_points: np.ndarray
+    canonical_points: np.ndarray
+    confidence: np.ndarray | None = None
+    pixels: np.ndarray | None = None
+    layers: np.ndarray | None = None
+    intrinsics: np.ndarray | None = None
+    image_size: tuple[int, int] | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """Fits of a batch of B instances (rows in input order). Unfitted rows hold NaN.
+
+    Attributes:
+        sample_id, status, reason: per instance (status ``"ok"``, ``"too_few_points"`` or ``"bad_input"``).
+        excess_rotations: (B, J, 3) radians. bone_scales: (B, J) (discarded for the training target).
+        global_scale: (B,), global_rotation: (B, 3, 3), global_translation: (B, 3) metres: canonical → prediction
+            frame, ``x = s R v + t``.
+        posed_vertices: (B, V, 3) float32, the unscaled articulated mesh (unit bone scales) after the global
+            similarity, metres, prediction frame.
+        losses: name → (B,) final value of each loss term (unweighted) and ``total`` (weighted, as optimised).
+        residual_chamfer: (B,) RMS bidirectional Chamfer between the inlier predicted posed points and
+            ``posed_vertices``, metres.
+        inlier_ratio: (B,) inliers / points. mean_confidence: (B,) mean C of all points (NaN without confidence).
+        num_points, num_inliers, num_control_points: (B,) int.
+        cameras: per instance a :class:`~.camera.CameraEstimate` or None (unfitted / no pixels).
+    """
+
+    sample_id: list[str]
+    status: list[str]
+    reason: list[str]
+    excess_rotations: np.ndarray
+    bone_scales: np.ndarray
+    global_scale: np.ndarray
+    global_rotation: np.ndarray
+    global_translation: np.ndarray
+    posed_vertices: np.ndarray
+    losses: dict[str, np.ndarray]
+    residual_chamfer: np.ndarray
+    inlier_ratio: np.ndarray
+    mean_confidence: np.ndarray
+    num_points: np.ndarray
+    num_inliers: np.ndarray
+    num_control_points: np.ndarray
+    cameras: list[CameraEstimate | None] = field(default_factory=list)
+
+
+@dataclass
+class _Prepared:
+    index: int
+    vertex: np.ndarray  # (n,) assigned vertex per control point
+    target: np.ndarray  # (n, 3) predicted posed points of the control points
+    inlier_vertex: np.ndarray  # assigned vertices of all inliers
+    inlier_posed: np.ndarray
+
+
+def _check_instance(inst: PointCloudInstance) -> str:
+    p = np.asarray(inst.posed_points)
+    q = np.asarray(inst.canonical_points)
+    if p.ndim != 2 or p.shape[1] != 3:
+        return f"posed_points must have shape (N, 3), got {p.shape}"
+    if q.shape != p.shape:
+        return f"canonical_points must have the shape of posed_points {p.shape}, got {q.shape}"
+    n = p.shape[0]
+    for name in ("confidence", "layers"):
+        a = getattr(inst, name)
+        if a is not None and np.asarray(a).shape != (n,):
+            return f"{name} must have shape ({n},), got {np.asarray(a).shape}"
+    if inst.pixels is not None and np.asarray(inst.pixels).shape != (n, 2):
+        return f"pixels must have shape ({n}, 2), got {np.asarray(inst.pixels).shape}"
+    if inst.intrinsics is not None and np.asarray(inst.intrinsics).shape != (3, 3):
+        return f"intrinsics must have shape (3, 3), got {np.asarray(inst.intrinsics).shape}"
+    return ""
+
+
+def _prepare(asset: FittingAsset, inst: PointCloudInstance, config: FittingConfig, rng: np.random.Generator,
+             index: int) -> tuple[_Prepared | None, str, str, dict]:
+    err = _check_instance(inst)
+    if err:
+        return None, STATUS_BAD_INPUT, err, {"num_points": 0, "num_inliers": 0}
+    p = np.asarray(inst.posed_points, dtype=np.float64)
+    finite = np.isfinite(p).all(1)
+    corr = asset.vertex_index.match(inst.canonical_points, inst.confidence, config.inlier_distance,
+                                    config.min_confidence)
+    inl = corr.inlier & finite
+    info = {"num_points": int(len(p)), "num_inliers": int(inl.sum())}
+    if inl.sum() < config.min_valid_points:
+        return None, STATUS_TOO_FEW, (f"{int(inl.sum())} inlier points (of {len(p)}) < min_valid_points "
+                                      f"{config.min_valid_points}"), info
+    idx = np.flatnonzero(inl)
+    pick = farthest_point_sampling(corr.distance[idx], corr.vertex[idx], asset.geodesics,
+                                   config.num_control_points, rng)
+    ctrl = idx[pick]
+    return _Prepared(index=index, vertex=corr.vertex[ctrl], target=p[ctrl], inlier_vertex=corr.vertex[idx],
+                     inlier_posed=p[idx]), "ok", "", info
+
+
+def _robust_similarity(source: np.ndarray, target: np.ndarray, delta: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """Kabsch–Umeyama similarity source → target, re-weighted a few times with Huber weights."""
+    w = np.ones(len(source))
+    sim = umeyama(source, target, with_scale=True)
+    for _ in range(_INIT_IRLS_ITERATIONS):
+        r = np.linalg.norm(sim.apply(source) - target, axis=1)
+        w = np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
+        sim = umeyama(source, target, with_scale=True, weights=w)
+    return sim.scale, sim.rotation, sim.translation
+
+
+def _skinning_matrices(tensors: RigTensors, g: torch.Tensor) -> torch.Tensor:
+    """(B, J, 12): the top 3x4 rows of ``G_j @ G_rest[j]^-1``, flattened."""
+    m = (g @ tensors.inverse_rest_transforms)[:, :, :3, :]
+    return m.reshape(g.shape[0], g.shape[1], 12)
+
+
+def _skin_all(tensors: RigTensors, m: torch.Tensor, rest_h: torch.Tensor) -> torch.Tensor:
+    """(B, V, 3) linear blend skinning of every vertex from skinning matrices ``m`` (B, J, 12).
+
+    The result is a view of vertex-major (V, B, 3) memory, the layout the regularisers' sparse products want.
+    """
+    b, j, _ = m.shape
+    # (V, J) @ (J, B*12): one GEMM blends all instances' matrices per vertex
+    blended = (tensors.skin_weights @ m.permute(1, 0, 2).reshape(j, b * 12)).reshape(-1, b, 3, 4)
+    return (blended * rest_h[:, None, None, :]).sum(-1).permute(1, 0, 2)
+
+
+def _skin_subset(tensors: RigTensors, m: torch.Tensor, rest_h: torch.Tensor, vertex: torch.Tensor) -> torch.Tensor:
+    """(B, N, 3) skinning of the vertices ``vertex`` (B, N) only."""
+    w = tensors.skin_weights[vertex]  # (B, N, J)
+    blended = torch.bmm(w, m).reshape(*vertex.shape, 3, 4)
+    return torch.einsum("bnrc,bnc->bnr", blended, rest_h[vertex])
+
+
+def _nan_result(instances, statuses, reasons, infos, j, v) -> dict:
+    b = len(instances)
+    return dict(excess_rotations=np.full((b, j, 3), np.nan), bone_scales=np.full((b, j), np.nan),
+                global_scale=np.full(b, np.nan), global_rotation=np.full((b, 3, 3), np.nan),
+                global_translation=np.full((b, 3), np.nan), posed_vertices=np.full((b, v, 3), np.nan, np.float32),
+                losses={k: np.full(b, np.nan) for k in LOSS_NAMES}, residual_chamfer=np.full(b, np.nan),
+                inlier_ratio=np.array([i["num_inliers"] / max(i["num_points"], 1) for i in infos], dtype=np.float64),
+                num_points=np.array([i["num_points"] for i in infos], dtype=np.int64),
+                num_inliers=np.array([i["num_inliers"] for i in infos], dtype=np.int64),
+                num_control_points=np.zeros(b, dtype=np.int64))
+
+
+def fit_batch(asset: FittingAsset, instances: list[PointCloudInstance], config: FittingConfig,
+              fit_focal: bool = False) -> FitResult:
+    """Fit the asset's rig to each instance's predicted dual point cloud.
+
+    Args:
+        asset: from :meth:`FittingAsset.prepare` (its device is used).
+        instances: B point clouds (any sizes; control points are padded and masked).
+        config: the fitting configuration (a preset).
+        fit_focal: also search the focal length during camera recovery (see :func:`~.camera.recover_camera`).
+    Returns:
+        :class:`FitResult`; instances with too few inlier points are recorded with their status, not fitted.
+    """
+    if not isinstance(config, FittingConfig):
+        raise TypeError(f"config must be a FittingConfig, got {type(config).__name__}")
+    if not isinstance(instances, (list, tuple)) or not all(isinstance(i, PointCloudInstance) for i in instances):
+        raise TypeError("instances must be a list of PointCloudInstance")
+    rig, tensors = asset.rig, asset.tensors
+    num_j, num_v = rig.num_joints, rig.num_vertices
+    statuses, reasons, infos, prepared = [], [], [], []
+    for k, inst in enumerate(instances):
+        rng = np.random.default_rng([config.seed, k])
+        prep, status, reason, info = _prepare(asset, inst, config, rng, k)
+        statuses.append(status)
+        reasons.append(reason)
+        infos.append(info)
+        if prep is not None:
+            prepared.append(prep)
+    out = _nan_result(instances, statuses, reasons, infos, num_j, num_v)
+    conf = [np.asarray(i.confidence, dtype=np.float64) if i.confidence is not None else None for i in instances]
+    out["mean_confidence"] = np.array([float(c.mean()) if c is not None and len(c) else np.nan for c in conf])
+    cameras: list[CameraEstimate | None] = [None] * len(instances)
+    if prepared:
+        fitted = _optimise(asset, prepared, config)
+        for slot, prep in enumerate(prepared):
+            k = prep.index
+            for key in ("excess_rotations", "bone_scales", "global_scale", "global_rotation", "global_translation",
+                        "posed_vertices"):
+                out[key][k] = fitted[key][slot]
+            for name in LOSS_NAMES:
+                out["losses"][name][k] = fitted["losses"][name][slot]
+            out["num_control_points"][k] = len(prep.vertex)
+            out["residual_chamfer"][k] = rms_chamfer(prep.inlier_posed, fitted["posed_vertices"][slot])
+            cameras[k] = _camera_of(asset, instances[k], fitted["world_vertices"][slot],
+                                    fitted["global_rotation"][slot], config, fit_focal)
+    return FitResult(sample_id=[str(i.sample_id) for i in instances], status=statuses, reason=reasons,
+                     cameras=cameras, **out)
+
+
+def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np.ndarray, rotation: np.ndarray,
+               config: FittingConfig, fit_focal: bool) -> CameraEstimate | None:
+    """Camera of one fitted instance from its layer-0 pixels (None without pixels or intrinsics)."""
+    if inst.pixels is None or inst.intrinsics is None:
+        return None
+    layers = np.zeros(len(inst.pixels), dtype=np.int64) if inst.layers is None else np.asarray(inst.layers)
+    corr = asset.vertex_index.match(inst.canonical_points, inst.confidence, config.inlier_distance,
+                                    config.min_confidence)
+    front = (layers == 0) & corr.inlier
+    if front.sum() < 2:
+        return None
+    rotated = world_vertices[corr.vertex[front]] @ rotation.T  # (n, 3) fitted points, camera orientation
+    seed = np.random.default_rng([config.seed, 7, len(inst.pixels)])
+    return recover_camera(rotation, rotated, np.asarray(inst.pixels, dtype=np.float64)[front],
+                          np.asarray(inst.intrinsics, dtype=np.float64), rng=seed, fit_focal=fit_focal,
+                          image_size=inst.image_size)
+
+
+def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingConfig) -> dict:
+    """Adam over θ, log bone scales and the global similarity for the fittable instances."""
+    dev, dt = asset.device, asset.dtype
+    tensors, reg, reg_tensors = asset.tensors, asset.regularisers, asset.reg_tensors
+    b, num_j = len(prepared), asset.rig.num_joints
+    n_max = max(len(p.vertex) for p in prepared)
+    vertex = np.zeros((b, n_max), dtype=np.int64)
+    target = np.zeros((b, n_max, 3))
+    mask = np.zeros((b, n_max))
+    s0, r0, t0 = np.ones(b), np.tile(np.eye(3), (b, 1, 1)), np.zeros((b, 3))
+    rest = asset.rig.rest_vertices
+    for i, p in enumerate(prepared):
+        n = len(p.vertex)
+        vertex[i, :n], target[i, :n], mask[i, :n] = p.vertex, p.target, 1.0
+        s0[i], r0[i], t0[i] = _robust_similarity(rest[p.vertex], p.target, config.huber_delta)
+    to = dict(dtype=dt, device=dev)
+    vertex_t = torch.as_tensor(vertex, device=dev)
+    target_t, mask_t = torch.as_tensor(target, **to), torch.as_tensor(mask, **to)
+    r0_t, t0_t, logs0_t = torch.as_tensor(r0, **to), torch.as_tensor(t0, **to), torch.as_tensor(np.log(s0), **to)
+    rest_h = torch.cat([tensors.rest_vertices, torch.ones(tensors.num_vertices, 1, **to)], 1)  # (V, 4)
+    reg_rest_h = torch.cat([reg_tensors.rest_vertices, torch.ones(reg_tensors.num_vertices, 1, **to)], 1)
+
+    theta = torch.zeros(b, num_j, 3, **to, requires_grad=True)
+    log_bone = torch.zeros(b, num_j, **to, requires_grad=True)
+    omega = torch.zeros(b, 3, **to, requires_grad=True)
+    d_trans = torch.zeros(b, 3, **to, requires_grad=True)
+    d_logs = torch.zeros(b, **to, requires_grad=True)
+    groups = [{"params": [theta], "lr": config.lr_rotations},
+              {"params": [omega, d_trans, d_logs], "lr": config.lr_global}]
+    if config.enable_bone_scales:
+        groups.append({"params": [log_bone], "lr": config.lr_bone_scales})
+    opt = torch.optim.Adam(groups)
+    joint_mask = torch.ones(num_j, **to)
+    if not config.fit_root_rotation:
+        joint_mask[torch.as_tensor(asset.rig.parents < 0, device=dev)] = 0.0
+    lo, hi = (float(np.log(x)) for x in config.bone_scale_bounds)
+    radius = config.repulsion_radius
+    pair_batch = torch.zeros(0, dtype=torch.long, device=dev)
+    pairs = torch.zeros(0, 2, dtype=torch.long, device=dev)
+
+    def evaluate(step: int):
+        nonlocal pair_batch, pairs
+        th = theta * joint_mask[None, :, None]
+        g_unscaled = forward_kinematics(tensors, th)
+        m_unscaled = _skinning_matrices(tensors, g_unscaled)
+        verts_u = _skin_all(reg_tensors, m_unscaled, reg_rest_h)  # (B, Vr, 3) unscaled articulated (proxy) mesh
+        if config.enable_bone_scales:
+            scales = torch.exp(log_bone)
+            m_data = _skinning_matrices(tensors, forward_kinematics(tensors, th, scales))
+        else:
+            scales, m_data = torch.ones_like(log_bone), m_unscaled
+        ctrl = _skin_subset(tensors, m_data, rest_h, vertex_t)  # (B, N, 3) control vertices, scaled mesh
+        rot = axis_angle_to_matrix(omega) @ r0_t
+        scale = torch.exp(logs0_t + d_logs)
+        trans = t0_t + d_trans
+        posed_ctrl = scale[:, None, None] * ctrl @ rot.transpose(1, 2) + trans[:, None, :]
+        if step % config.repulsion_refresh_steps == 0 and config.weight_repulsion > 0:
+            vu = verts_u.detach().cpu().numpy().astype(np.float64)
+            found = [find_repulsion_pairs(vu[i], asset.reg_geodesics, asset.geodesic_threshold, 2.0 * radius,
+                                          config.repulsion_k) for i in range(b)]
+            pair_batch = torch.as_tensor(np.concatenate([np.full(len(f), i) for i, f in enumerate(found)]),
+                                         dtype=torch.long, device=dev)
+            pairs = torch.as_tensor(np.concatenate(found), dtype=torch.long, device=dev).reshape(-1, 2)
+        terms = {
+            "data": data_term(posed_ctrl, target_t, mask_t, config.huber_delta),
+            "angle": angle_term(th, joint_mask),
+            "edge": reg.edge(verts_u),
+            "volume": reg.volume(verts_u),
+            "repulsion": repulsion_term(verts_u, pair_batch, pairs, radius, b),
+            "scale": scale_term(scales, asset.left_right),
+        }
+        warm = 1.0
+        if config.warmup and config.warmup_steps > 0:
+            warm = 1.0 + (config.warmup_factor - 1.0) * max(0.0, 1.0 - step / config.warmup_steps)
+        total = (terms["data"] + warm * (config.weight_angle * terms["angle"] + config.weight_edge * terms["edge"]
+                                         + config.weight_volume * terms["volume"])
+                 + config.weight_repulsion * terms["repulsion"] + config.weight_scale * terms["scale"])
+        terms["total"] = total
+        return terms, m_unscaled, rot, scale, trans, scales
+
+    for step in range(config.steps):
+        opt.param_groups[0]["lr"] = config.lr_rotations * 0.5 ** (step // config.rotation_lr_halving_steps)
+        opt.zero_grad(set_to_none=True)
+        terms, *_ = evaluate(step)
+        terms["total"].sum().backward()
+        opt.step()
+        if config.enable_bone_scales:
+            with torch.no_grad():
+                log_bone.clamp_(lo, hi)
+    with torch.no_grad():
+        terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps)
+        verts_u = _skin_all(tensors, m_unscaled, rest_h)  # full mesh, unit bone scales
+        posed = scale[:, None, None] * verts_u @ rot.transpose(1, 2) + trans[:, None, :]
+        th = theta * joint_mask[None, :, None]
+    cpu = lambda t: t.detach().cpu().numpy().astype(np.float64)  # noqa: E731
+    return dict(excess_rotations=cpu(th), bone_scales=cpu(scales), global_scale=cpu(scale),
+                global_rotation=cpu(rot), global_translation=cpu(trans),
+                posed_vertices=posed.detach().cpu().numpy().astype(np.float32), world_vertices=cpu(verts_u),
+                losses={k: cpu(v) for k, v in terms.items()})
