@@ -1,4 +1,5 @@
-"""Predictor inputs: a collection's images and masks → preprocessed collection shards (object-centred crops)."""
+"""Predictor stages: a collection's images and masks → preprocessed collection shards (object-centred crops), and
+inference of dual point maps on those shards."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,11 +7,13 @@ from typing import Any, Mapping, Sequence
 
 from bat3r_core import shards
 from bat3r_core.config_utils import from_mapping
-from bat3r_core.predictor import collection
+from bat3r_core.predictor import collection, infer
+from bat3r_core.predictor.features import FeatureConfig, make_feature_fn
 from bat3r_core.runs import shard_record
-from tasks._cache import stage_task
+from tasks._cache import shard_input_files, stage_task
+from tasks._devices import gpu_slot
 
-__all__ = ["ingest_collection_shard"]
+__all__ = ["ingest_collection_shard", "infer_shard"]
 
 
 def _sample_files(samples: Sequence[Mapping[str, str]]) -> list[Path]:
@@ -29,3 +32,22 @@ def ingest_collection_shard(samples: list[dict], index: int, out_dir: str, confi
                                          Path(s["mask_path"]) if s.get("mask_path") else None) for s in samples]
     paths = collection.write_collection_shard(items, out_dir, index, cfg)
     return shard_record("collection", index, paths)
+
+
+@stage_task("infer", "bat3r_core.predictor.infer",
+            inputs=lambda p: [Path(p["predictor"])] + shard_input_files(p["collection_dir"], p["index"]),
+            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=2, gpu=True,
+            task_run_name="infer-{index}")
+def infer_shard(predictor: str, collection_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
+    """Predict dual point maps for shard ``index`` of ``collection_dir`` with the checkpoint ``predictor``
+    (``bat3r_core.predictor.infer.predict_shard``; the model is loaded onto the GPU this task holds).
+    config: ``{"features": FeatureConfig mapping, "batch_size": int}``. Returns the shard record plus
+    ``clouds`` (the ``part-NNNNN.clouds.npz`` written beside the shard)."""
+    feature_cfg = from_mapping(FeatureConfig, config["features"], "features")
+    with gpu_slot() as device:
+        model, _ = infer.load_predictor(predictor, "cpu" if device is None else f"cuda:{device}")
+        paths = infer.predict_shard(model, collection_dir, index, out_dir, make_feature_fn(feature_cfg),
+                                    int(config.get("batch_size", 16)))
+    record = shard_record("infer", index, paths)
+    record["clouds"] = str(infer.clouds_path(out_dir, index))
+    return record
