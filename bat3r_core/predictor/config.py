@@ -116,10 +116,10 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     },
     # The `make demo` loop on 2 CPU cores: minutes per iteration.
     "demo": {
-        "model": {"resolution": 96, "layers": 4, "in_channels": 3, "base_channels": 16, "depth": 3,
+        "model": {"resolution": 96, "layers": 4, "in_channels": 3, "base_channels": 8, "depth": 3,
                   "two_stage": True},
-        "train": {"steps": 1500, "batch_size": 8, "grad_accum": 1, "lr": 1e-3, "warmup_steps": 100,
-                  "checkpoint_every": 250},
+        "train": {"steps": 600, "batch_size": 8, "grad_accum": 1, "lr": 1e-3, "warmup_steps": 50,
+                  "checkpoint_every": 200},
     },
     # The published setting (DualPM network, BAT3R schedule), for GPUs.
     "paper": {
