@@ -2,5 +2,7 @@
 augmentation (see docs/fitting.md)."""
 from .config import PRESETS, FittingConfig, preset
 from .fit import FitResult, FittingAsset, PointCloudInstance, fit_batch
+from .io import fit_points_file, read_points_npz, write_points_npz
 
-__all__ = ["FittingConfig", "PRESETS", "preset", "FittingAsset", "PointCloudInstance", "FitResult", "fit_batch"]
+__all__ = ["FittingConfig", "PRESETS", "preset", "FittingAsset", "PointCloudInstance", "FitResult", "fit_batch",
+           "fit_points_file", "read_points_npz", "write_points_npz"]
