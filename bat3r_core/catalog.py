@@ -260,7 +260,7 @@ class Catalog:
         from .predictor.config import ModelConfig
 
         preset = self.run_preset(run)
-        data = {"resolution": preset.image_size, "layers": self.layers, **preset.model}
+        data = {"resolution": preset.image_size, "layers": self.layers, "feature": preset.features, **preset.model}
         return _stage(ModelConfig, data, f"runs.{run}.model")
 
     def train_config(self, run: str):

@@ -24,7 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _results import record  # noqa: E402
 
-from bat3r_core.predictor.config import preset_configs  # noqa: E402
+from bat3r_core.catalog import load_catalog  # noqa: E402
 from bat3r_core.predictor.data import ShardDataset  # noqa: E402
 from bat3r_core.predictor.infer import predict_maps  # noqa: E402
 from bat3r_core.predictor.network import count_parameters  # noqa: E402
@@ -32,6 +32,12 @@ from bat3r_core.predictor.synthetic import write_synthetic_shards  # noqa: E402
 from bat3r_core.predictor.train import Trainer  # noqa: E402
 
 WARMUP_STEPS, TIMED_STEPS, INFER_IMAGES = 2, 8, 64
+
+
+def preset_configs(name: str):
+    """(ModelConfig, TrainConfig) of the data catalog's run preset ``name``."""
+    catalog = load_catalog()
+    return catalog.model_config(name), catalog.train_config(name)
 
 
 def _train_rate(preset: str, root: Path) -> tuple[float, float, int]:

@@ -2,14 +2,15 @@
 
 Both dataclasses are frozen and hold plain-typed fields only, so the data catalog builds them with
 ``config_utils.from_mapping`` and checkpoints store them as plain dicts (``config_utils.to_mapping``).
-Named run presets (``tiny``, ``demo``, ``paper``) are data in ``PRESETS``; ``preset_configs`` builds them.
+Named run presets (``tiny``, ``demo``, ``paper``) are data in the data catalog (``runs.<name>.model`` and
+``runs.<name>.train``); ``bat3r_core.catalog.Catalog.model_config`` / ``train_config`` build them.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal, Mapping
+from typing import Literal
 
-from bat3r_core.config_utils import ConfigError, from_mapping
+from bat3r_core.config_utils import ConfigError
 
 #: Values stored per (pixel, layer) by the network, in this channel order.
 CHANNELS_PER_LAYER = 9  # canonical xyz, posed xyz, occupancy logit, canonical confidence, posed confidence
@@ -103,45 +104,3 @@ class TrainConfig:
             raise ConfigError(f"TrainConfig.betas: expected two values in [0, 1), got {self.betas}")
         if self.grad_clip < 0:
             raise ConfigError(f"TrainConfig.grad_clip: expected >= 0, got {self.grad_clip}")
-
-
-#: Run presets as plain data: preset name -> {"model": ModelConfig kwargs, "train": TrainConfig kwargs}.
-PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    # Seconds per hundred steps on 2 CPU cores: smoke tests and the toy loop.
-    "tiny": {
-        "model": {"resolution": 64, "layers": 4, "in_channels": 3, "base_channels": 8, "depth": 3,
-                  "two_stage": True},
-        "train": {"steps": 300, "batch_size": 8, "grad_accum": 1, "lr": 2e-3, "warmup_steps": 20,
-                  "checkpoint_every": 100},
-    },
-    # The `make demo` loop on 2 CPU cores: minutes per iteration.
-    "demo": {
-        "model": {"resolution": 96, "layers": 4, "in_channels": 3, "base_channels": 8, "depth": 3,
-                  "two_stage": True},
-        "train": {"steps": 600, "batch_size": 8, "grad_accum": 1, "lr": 1e-3, "warmup_steps": 50,
-                  "checkpoint_every": 200},
-    },
-    # The published setting (DualPM network, BAT3R schedule), for GPUs.
-    "paper": {
-        "model": {"resolution": 160, "layers": 4, "in_channels": 64, "base_channels": 64, "depth": 4,
-                  "two_stage": True, "feature": "dinov2"},
-        "train": {"steps": 60000, "batch_size": 12, "grad_accum": 2, "lr": 6e-4, "warmup_steps": 1000,
-                  "checkpoint_every": 1000, "loss": "robust", "grad_clip": 1.0},
-    },
-}
-
-
-def preset_configs(name: str, overrides: Mapping[str, Mapping[str, Any]] | None = None
-                   ) -> tuple[ModelConfig, TrainConfig]:
-    """Build ``(ModelConfig, TrainConfig)`` of preset ``name``, optionally updated by
-    ``overrides = {"model": {...}, "train": {...}}`` (same keys as the dataclasses)."""
-    if name not in PRESETS:
-        raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {name!r}")
-    overrides = dict(overrides or {})
-    unknown = sorted(set(overrides) - {"model", "train"})
-    if unknown:
-        raise ConfigError(f"preset overrides: unknown key(s) {unknown}; allowed: ['model', 'train']")
-    base = PRESETS[name]
-    model = from_mapping(ModelConfig, {**base["model"], **dict(overrides.get("model", {}))}, f"{name}.model")
-    train = from_mapping(TrainConfig, {**base["train"], **dict(overrides.get("train", {}))}, f"{name}.train")
-    return model, train

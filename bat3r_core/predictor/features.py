@@ -29,6 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from bat3r_core.predictor.data import rgb_features
 from bat3r_core.shards import ShardPaths, atomic_write, list_shards, ok_mask, read_shard, write_shard
 
 FEATURE_CODE_VERSION = 1
@@ -191,8 +192,7 @@ class RGBExtractor(FeatureExtractor):
         return {"extractor": self.name, "version": FEATURE_CODE_VERSION}
 
     def compute_grid(self, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
-        out = rgb.transpose(0, 3, 1, 2).astype(np.float32) / 255.0
-        return out * mask[:, None].astype(np.float32)
+        return rgb_features(rgb, mask)
 
 
 # ------------------------------------------------------------------------------------------------------------ PCA

@@ -35,7 +35,7 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
 from bat3r_core.config_utils import from_mapping, to_mapping
-from bat3r_core.predictor.config import ModelConfig, TrainConfig, preset_configs
+from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.data import FeatureFn, ShardDataset
 from bat3r_core.predictor.loss import dual_pointmap_loss, huber_delta
 from bat3r_core.predictor.network import DualPointMapNet
@@ -289,10 +289,3 @@ def train_predictor(shards_dir: str | os.PathLike, out_dir: str | os.PathLike, m
     """Train (or resume training) on the training shards of ``shards_dir``; returns ``out_dir/predictor.pt``."""
     dataset = ShardDataset(shards_dir, feature_fn, cache_shards=train_cfg.shuffle_shards)
     return Trainer(dataset, model_cfg, train_cfg, out_dir).train()
-
-
-def train_preset(shards_dir: str | os.PathLike, out_dir: str | os.PathLike, preset: str,
-                 feature_fn: FeatureFn | None = None) -> Path:
-    """``bat3r train --shards DIR --out DIR --preset NAME``: ``train_predictor`` with a named preset."""
-    model_cfg, train_cfg = preset_configs(preset)
-    return train_predictor(shards_dir, out_dir, model_cfg, train_cfg, feature_fn)

@@ -8,7 +8,7 @@ import torch.multiprocessing as mp
 
 from bat3r_core.config_utils import ConfigError
 from bat3r_core.pointmaps import decode_float16
-from bat3r_core.predictor.config import PRESETS, ModelConfig, TrainConfig, preset_configs
+from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.data import ShardDataset, rgb_features
 from bat3r_core.predictor.infer import load_predictor
 from bat3r_core.predictor.network import DualPointMapNet
@@ -62,18 +62,19 @@ def test_network_input_checks():
 
 
 # ---------------------------------------------------------------------------------------------- configs
-def test_presets_build_and_paper_matches_reference():
-    for name in PRESETS:
-        preset_configs(name)
-    model, train = preset_configs("paper")
+def test_catalog_presets_build_and_paper_matches_reference():
+    from bat3r_core.catalog import load_catalog
+
+    catalog = load_catalog()
+    for name in catalog.runs:
+        catalog.model_config(name), catalog.train_config(name)
+    model, train = catalog.model_config("paper"), catalog.train_config("paper")
     assert (model.layers, model.resolution, model.in_channels, model.two_stage) == (4, 160, 64, True)
+    assert model.feature == "dinov2"
     assert (train.batch_size, train.steps, train.lr, train.warmup_steps, train.grad_accum, train.weight_decay) == \
         (12, 60000, 6e-4, 1000, 2, 0.01)
+    assert train.loss == "robust" and train.grad_clip > 0
     assert train.betas[0] > 0.9 and train.betas[1] > 0.999
-    with pytest.raises(ValueError, match="preset: expected one of"):
-        preset_configs("huge")
-    with pytest.raises(ConfigError, match=r"tiny.train.steps: expected an integer"):
-        preset_configs("tiny", {"train": {"steps": "many"}})
     with pytest.raises(ConfigError, match="resolution: expected a multiple of 2\\*\\*depth = 8, got 20"):
         ModelConfig(resolution=20, depth=3)
 
