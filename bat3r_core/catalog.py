@@ -186,6 +186,8 @@ class Catalog:
         fitting_presets: ``synthetic`` and ``real`` fitting settings (checked against ``FittingConfig``).
         runs: named run presets.
         categories: categories by name.
+        features: feature extraction settings (mapping checked against ``predictor.features.FeatureConfig``;
+            the extractor name comes from the run preset).
     """
 
     path: str
@@ -197,6 +199,7 @@ class Catalog:
     fitting_presets: dict[str, dict[str, Any]]
     runs: dict[str, RunPreset]
     categories: dict[str, Category]
+    features: dict[str, Any] = field(default_factory=dict)
 
     @property
     def root(self) -> Path:
@@ -268,6 +271,20 @@ class Catalog:
 
         return _stage(TrainConfig, self.run_preset(run).train, f"runs.{run}.train")
 
+    def feature_config(self, run: str | None = None, extractor: str | None = None):
+        """``FeatureConfig`` from the ``features`` section; the extractor is ``extractor``, else the run preset's."""
+        from .predictor.features import FeatureConfig
+
+        data = dict(self.features)
+        if extractor is not None:
+            data["extractor"] = extractor
+        elif run is not None:
+            data["extractor"] = self.run_preset(run).features
+        if data.get("cache_dir"):
+            data["cache_dir"] = str(self.root / data["cache_dir"]) if not os.path.isabs(data["cache_dir"]) \
+                else data["cache_dir"]
+        return _stage(FeatureConfig, data, "features")
+
     def render_config(self, run: str):
         from .render.config import RenderConfig
 
@@ -286,6 +303,7 @@ class Catalog:
             self.model_config(run)
             self.train_config(run)
             self.render_config(run)
+            self.feature_config(run)
 
 
 def _stage(cls, data: dict[str, Any], path: str):
@@ -298,7 +316,7 @@ def _stage(cls, data: dict[str, Any], path: str):
 
 
 _TOP_KEYS = {"storage_root", "image_size", "layers", "shard_size", "camera_prior", "fitting_presets", "runs",
-             "categories", "version"}
+             "categories", "features", "version"}
 
 
 def default_catalog_path() -> Path:
@@ -362,6 +380,7 @@ def load_catalog(path: str | os.PathLike | None = None, validate_stages: bool = 
         fitting_presets=presets,
         runs=runs,
         categories=cats,
+        features=_check("features", raw.get("features", {}) or {}, dict),
     )
     for key in ("image_size", "layers", "shard_size"):
         if getattr(catalog, key) <= 0:

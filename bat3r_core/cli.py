@@ -66,6 +66,56 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _feature_fn(catalog, extractor: str):
+    """None for the built-in ``rgb`` features, else the catalog-configured extractor as a callable."""
+    if extractor == "rgb":
+        return None
+    from .predictor.features import make_feature_fn
+
+    return make_feature_fn(catalog.feature_config(extractor=extractor))
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from .catalog import load_catalog
+    from .predictor.train import train_predictor
+
+    catalog = load_catalog(args.catalog)
+    model_cfg, train_cfg = catalog.model_config(args.preset), catalog.train_config(args.preset)
+    if args.steps is not None:
+        import dataclasses
+
+        train_cfg = dataclasses.replace(train_cfg, steps=args.steps)
+    ckpt = train_predictor(args.shards, args.out, model_cfg, train_cfg, _feature_fn(catalog, model_cfg.feature))
+    print(f"trained {train_cfg.steps} steps ({args.preset} preset): {ckpt}")
+    return 0
+
+
+def _cmd_predict(args: argparse.Namespace) -> int:
+    from .catalog import load_catalog
+    from .predictor.collection import CollectionConfig, write_collection_shards
+    from .predictor.infer import load_predictor, predict_collection
+    from .shards import list_shards, read_table
+
+    catalog = load_catalog(args.catalog)
+    _, configs = load_predictor(args.model, "cpu")
+    model_cfg = configs.model
+    collection = Path(args.collection)
+    if not list_shards(collection):  # a raw folder / Parquet index: preprocess and shard it first
+        sharded = Path(args.out) / "collection"
+        write_collection_shards(collection, sharded, CollectionConfig(resolution=model_cfg.resolution,
+                                                                      shard_size=catalog.shard_size))
+        collection = sharded
+    out = Path(args.out) / "predictions"
+    predict_collection(args.model, collection, out, _feature_fn(catalog, model_cfg.feature))
+    rows = read_table(out).to_pylist()
+    ok = sum(r["status"] == "ok" for r in rows)
+    print(f"predicted {ok}/{len(rows)} samples into {out}")
+    for r in rows:
+        if r["status"] != "ok":
+            print(f"  {r['sample_id']}: {r['status']}: {r['reason']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bat3r", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -82,6 +132,22 @@ def build_parser() -> argparse.ArgumentParser:
     toy.add_argument("--out", type=Path, required=True, help="output .glb path")
     toy.add_argument("--coat", default="bay", help="procedural coat texture (bay, chestnut, grey, pinto)")
     toy.set_defaults(func=_cmd_asset_toy)
+
+    tr = sub.add_parser("train", help="train a dual point map predictor on rendered training shards")
+    tr.add_argument("--shards", required=True, type=Path, help="folder of training shards (part-NNNNN.parquet/.npz)")
+    tr.add_argument("--out", required=True, type=Path, help="output folder (checkpoint.pt, predictor.pt, log)")
+    tr.add_argument("--preset", default="tiny", help="run preset of the data catalog (tiny, demo, paper)")
+    tr.add_argument("--steps", type=int, default=None, help="override the preset's number of steps")
+    tr.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    tr.set_defaults(func=_cmd_train)
+
+    pr = sub.add_parser("predict", help="predict dual point maps for an image collection")
+    pr.add_argument("--model", required=True, type=Path, help="predictor.pt written by `bat3r train`")
+    pr.add_argument("--collection", required=True, type=Path,
+                    help="collection shards, a folder with images/ and masks/, or a Parquet index")
+    pr.add_argument("--out", required=True, type=Path, help="output folder (predictions/ and clouds)")
+    pr.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    pr.set_defaults(func=_cmd_predict)
 
     ev = sub.add_parser("evaluate", help="recompute metrics.parquet and report.html of a run from its stored rows")
     ev.add_argument("--run", required=True, type=Path, help="run folder (<storage>/<category>/<run name>)")
