@@ -53,7 +53,9 @@ def summary_markdown(layout: RunLayout, iteration: int, stages: Sequence[StageRe
         lines += ["", "## Skipped samples (first ones)", ""]
         lines += [f"- {stage} `{s[0]}`: {s[1]} ({s[2]})" for stage, s in skipped[:20]]
     rows = [r for r in metrics_rows if r.get("iteration") == iteration]
-    if rows:
+    if not rows:
+        lines += ["", "No metrics for this iteration yet (no evaluation shards)."]
+    else:
         lines += ["", "## Metrics", "", "| " + " | ".join(METRIC_COLUMNS) + " |",
                   "|" + "---|" * len(METRIC_COLUMNS)]
         lines += ["| " + " | ".join(_fmt(r.get(c)) for c in METRIC_COLUMNS) + " |" for r in rows]
@@ -64,11 +66,12 @@ def summary_markdown(layout: RunLayout, iteration: int, stages: Sequence[StageRe
 
 def publish_iteration_artifacts(layout: RunLayout, iteration: int, stages: Sequence[StageResult],
                                 metrics_rows: Sequence[dict], notes: Sequence[str] = ()) -> None:
-    """Create the run's metrics table artifact (all iterations so far) and this iteration's markdown summary."""
-    table = [{c: r.get(c) for c in METRIC_COLUMNS} for r in metrics_rows]
-    create_table_artifact(table=table or [{c: None for c in METRIC_COLUMNS}],
-                          key=artifact_key(layout.category, layout.run_name, "metrics"),
-                          description=f"metrics.parquet of {layout.root}")
+    """Create the run's metrics table artifact (all iterations so far; none while ``metrics.parquet`` is empty) and
+    this iteration's markdown summary."""
+    if metrics_rows:
+        create_table_artifact(table=[{c: r.get(c) for c in METRIC_COLUMNS} for r in metrics_rows],
+                              key=artifact_key(layout.category, layout.run_name, "metrics"),
+                              description=f"metrics.parquet of {layout.root}")
     create_markdown_artifact(markdown=summary_markdown(layout, iteration, stages, metrics_rows, notes),
                              key=artifact_key(layout.category, layout.run_name, f"iter-{iteration:02d}-summary"),
                              description=f"iteration {iteration} of {layout.run_name}")

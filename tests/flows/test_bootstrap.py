@@ -162,3 +162,74 @@ def test_iterations_beyond_the_initialisation_name_what_is_missing(prefect_harne
     with pytest.raises(ValueError, match="iterations=2: bootstrap iterations after the canonical initialisation "
                                          "need bat3r_core functions that do not exist yet"):
         bootstrap(category="toy", preset="tiny", run_name="t2", overrides=TINY)
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+@pytest.mark.prefect_server
+@pytest.mark.browser
+def test_server_worker_deployment_run_artifacts_and_dashboard(first_run, catalog, tmp_path):
+    """deploy/server.sh → `prefect deployment run bootstrap/toy --watch` (run t1 again: every task is cached) →
+    artifacts through the API → the flow run's dashboard page in headless Chromium → deploy/server-stop.sh."""
+    port = _free_port()
+    home = tmp_path / "prefect-home"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(PREFECT_HOME=str(home), BAT3R_PREFECT_PORT=str(port), PREFECT_SERVER_ANALYTICS_ENABLED="false",
+               BAT3R_CATALOG=os.environ["BAT3R_CATALOG"], PY=sys.executable, PREFECT_WORKER_QUERY_SECONDS="1")
+    api = f"http://127.0.0.1:{port}/api"
+    try:
+        up = subprocess.run(["bash", str(ROOT / "deploy" / "server.sh")], cwd=ROOT, env=env, capture_output=True,
+                            text=True, timeout=240)
+        assert up.returncode == 0, up.stdout + up.stderr
+        assert f"Prefect dashboard: http://127.0.0.1:{port}" in up.stdout
+        for name in ("toy", "horse", "cow", "sheep"):
+            assert f"bootstrap/{name}" in up.stdout
+        params = '{"run_name": "t1", "overrides": ' + __import__("json").dumps(TINY) + "}"
+        run = subprocess.run([sys.executable, "-m", "prefect", "deployment", "run", "bootstrap/toy", "--watch",
+                              "--watch-timeout", "300", "--params", params], cwd=ROOT,
+                             env={**env, "PREFECT_API_URL": api}, capture_output=True, text=True, timeout=330)
+        assert run.returncode == 0 and "Completed" in run.stdout, run.stdout[-3000:] + run.stderr[-3000:]
+
+        check = subprocess.run([sys.executable, "-c", _API_CHECK], cwd=ROOT, env={**env, "PREFECT_API_URL": api},
+                               capture_output=True, text=True, timeout=60)
+        assert check.returncode == 0, check.stderr
+        run_id, summary = check.stdout.split("\n", 1)
+        assert "# toy / t1: iteration 0" in summary and "**render**: 2 of 2 task(s) done (2 from cache)" in summary
+
+        if CHROMIUM.exists():
+            dom = subprocess.run([str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+                                  "--no-first-run", "--disable-background-networking", "--disable-component-update",
+                                  "--disable-sync", f"--user-data-dir={tmp_path / 'chromium'}",
+                                  "--virtual-time-budget=20000", "--dump-dom",
+                                  f"http://127.0.0.1:{port}/runs/flow-run/{run_id.strip()}"],
+                                 capture_output=True, text=True, timeout=120)
+            assert "toy-t1" in dom.stdout and "Completed" in dom.stdout, dom.stdout[-2000:]
+    finally:
+        down = subprocess.run(["bash", str(ROOT / "deploy" / "server-stop.sh")], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=120)
+    assert "server: stopped" in down.stdout and "worker: stopped" in down.stdout, down.stdout + down.stderr
+    assert not (home / "bat3r-server" / "server.pid").exists()
+
+
+_API_CHECK = """
+from prefect.client.orchestration import get_client
+from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterKey, FlowRunFilter, FlowRunFilterName
+with get_client(sync_client=True) as c:
+    (run,) = c.read_flow_runs(flow_run_filter=FlowRunFilter(name=FlowRunFilterName(any_=["toy-t1"])))
+    assert run.state.is_completed(), run.state
+    keys = {a.key for a in c.read_artifacts()}
+    needed = {f"toy-t1-iter-00-{s}" for s in ("plan", "render", "features", "train", "summary")}
+    assert needed <= keys, sorted(keys)
+    (summary,) = c.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["toy-t1-iter-00-summary"])))
+    print(run.id)
+    print(summary.data)
+"""
