@@ -9,7 +9,8 @@ Run in its own process, one per shard (or per ``recycle_every`` images), by :mod
 object per line (the columns of :mod:`bat3r_core.render.jobs` plus ``index``). For each job the worker writes
 ``WORKDIR/job-<index>.npz`` (``rgb (H, W, 3) uint8``, ``mask (H, W) bool`` from the Object Index pass, and with
 ``debug_vertices`` the depsgraph-evaluated ``posed_vertices (V, 3)`` in bat3r's world frame and rig vertex order),
-then appends one JSON line ``{"index", "sample_id", "status", "reason", "seconds"}`` to ``RESULTS.jsonl``. A job
+then appends one JSON line ``{"index", "sample_id", "status", "reason", "seconds", "cpu_seconds"}`` to
+``RESULTS.jsonl`` (wall and process CPU time of the job). A job
 that cannot render (bad texture or environment file, NaN pose or camera) gets a non-``ok`` status and the worker
 goes on with the next one.
 
@@ -395,7 +396,7 @@ class BlenderRenderer:
         """Render one job row (dict of the job columns + ``index``); returns its result record."""
         import cv2
 
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         index = int(row["index"])
         job = job_from_dict(row)
         problems = job.problems(self.rig.num_joints)
@@ -426,7 +427,8 @@ class BlenderRenderer:
         with open(tmp, "wb") as f:
             np.savez(f, **arrays)
         os.replace(tmp, out)
-        return {"status": "ok", "reason": "", "seconds": time.perf_counter() - t0}
+        return {"status": "ok", "reason": "", "seconds": time.perf_counter() - t0,
+                "cpu_seconds": time.process_time() - c0}
 
 
 def main(argv: list[str] | None = None) -> int:
