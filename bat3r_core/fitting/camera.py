@@ -10,7 +10,8 @@ rotated into the camera orientation) and their pixels ``(u_i, v_i)``, the transl
 two equations linear in ``t``: two points fix it. RANSAC draws 2-point samples (100 iterations), scores the
 reprojection error against a threshold (5 px), and the best hypothesis is refined on its inliers by least squares
 (linear solve, then Gauss–Newton on the reprojection error). An optional focal search repeats this over a grid of
-focal lengths and keeps the one with most inliers (then lowest error).
+focal lengths and keeps the one with the lowest truncated squared reprojection error (MSAC cost
+``mean(min(e², threshold²))``, which rewards both more inliers and smaller errors).
 """
 from __future__ import annotations
 
@@ -144,8 +145,8 @@ def recover_camera(rotation: np.ndarray, points: np.ndarray, pixels: np.ndarray,
         rotation: (3, 3) world → camera rotation (the fitted global rotation).
         points: (N, 3) ``rotation @ x`` for the fitted world points matched to layer-0 pixels, metres.
         pixels: (N, 2). intrinsics: (3, 3) of the image the pixels refer to.
-        fit_focal: search the focal length over ``focal_factors`` times the given one (most inliers, then lowest
-            error), keeping the principal point.
+        fit_focal: search the focal length over ``focal_factors`` times the given one (lowest MSAC cost),
+            keeping the principal point.
     """
     K0 = np.asarray(intrinsics, dtype=np.float64)
     candidates = focal_factors if fit_focal else np.array([1.0])
@@ -155,7 +156,8 @@ def recover_camera(rotation: np.ndarray, points: np.ndarray, pixels: np.ndarray,
         K[0, 0] *= f
         K[1, 1] *= f
         t, mask, rms = recover_translation(points, pixels, K, rng, iterations, threshold_px)
-        key = (-int(mask.sum()), rms)
+        err = _reprojection(np.asarray(points, dtype=np.float64), np.asarray(pixels, dtype=np.float64), K, t[None])[0]
+        key = float(np.mean(np.minimum(err ** 2, threshold_px ** 2)))
         if best is None or key < best[0]:
             best = (key, K, t, mask, rms)
     _, K, t, mask, rms = best

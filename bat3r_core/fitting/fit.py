@@ -5,7 +5,8 @@ points under the surface metric (:mod:`.sampling`), a robust Kabsch–Umeyama si
 vertices to the predicted posed points, then Adam over the excess rotations θ, log bone scales and the global
 similarity (axis-angle delta ω on the initial rotation, ``R = R(ω) @ R0``; translation; log scale), with the
 paper's learning rates and schedule. Instances are independent: every loss is per instance and summed over the
-batch, and Adam is elementwise, so a batch gives the same numbers as fitting its instances one at a time.
+batch, and Adam is elementwise, so a batch gives the same numbers as fitting its instances one at a time
+(random choices are seeded by ``config.seed`` and the sample id, not the batch position).
 
 Frames: predicted posed points are camera-frame points relative to the object depth (docs/CONVENTIONS.md), so the
 fitted global similarity maps the canonical frame into that frame. The world of the fitted scene is the canonical
@@ -14,6 +15,7 @@ is recovered from layer-0 pixels (:mod:`.camera`).
 """
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -161,6 +163,11 @@ class _Prepared:
     inlier_posed: np.ndarray
 
 
+def _id_seed(sample_id: str) -> int:
+    """A stable seed from a sample id, so an instance's random choices do not depend on its batch."""
+    return zlib.crc32(str(sample_id).encode())
+
+
 def _check_instance(inst: PointCloudInstance) -> str:
     p = np.asarray(inst.posed_points)
     q = np.asarray(inst.canonical_points)
@@ -269,7 +276,7 @@ def fit_batch(asset: FittingAsset, instances: list[PointCloudInstance], config: 
     num_j, num_v = rig.num_joints, rig.num_vertices
     statuses, reasons, infos, prepared = [], [], [], []
     for k, inst in enumerate(instances):
-        rng = np.random.default_rng([config.seed, k])
+        rng = np.random.default_rng([config.seed, _id_seed(inst.sample_id)])
         prep, status, reason, info = _prepare(asset, inst, config, rng, k)
         statuses.append(status)
         reasons.append(reason)
@@ -309,7 +316,7 @@ def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np
     if front.sum() < 2:
         return None
     rotated = world_vertices[corr.vertex[front]] @ rotation.T  # (n, 3) fitted points, camera orientation
-    seed = np.random.default_rng([config.seed, 7, len(inst.pixels)])
+    seed = np.random.default_rng([config.seed, 7, _id_seed(inst.sample_id)])
     return recover_camera(rotation, rotated, np.asarray(inst.pixels, dtype=np.float64)[front],
                           np.asarray(inst.intrinsics, dtype=np.float64), rng=seed, fit_focal=fit_focal,
                           image_size=inst.image_size)

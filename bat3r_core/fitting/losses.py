@@ -81,7 +81,8 @@ def _selection(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, shape: tu
                ) -> torch.Tensor:
     """A sparse (COO) matrix; sparse @ dense keeps the gathers of the regularisers cheap in both passes."""
     idx = torch.as_tensor(np.stack([rows, cols]).astype(np.int64), device=device)
-    return torch.sparse_coo_tensor(idx, torch.as_tensor(values, dtype=dtype, device=device), shape).coalesce()
+    return torch.sparse_coo_tensor(idx, torch.as_tensor(values, dtype=dtype, device=device), shape,
+                                   check_invariants=False).coalesce()
 
 
 def edge_term(vertices: torch.Tensor, incidence: torch.Tensor, rest_sq_lengths: torch.Tensor) -> torch.Tensor:
@@ -213,7 +214,7 @@ class MeshRegularisers:
         centroid = _selection(np.repeat(face_bone, 3), f.reshape(-1), np.repeat(1.0 / per_bone[face_bone], 3),
                               (nb, nv), dtype, device)
         fb = torch.as_tensor(face_bone.astype(np.int64), device=device)
-        rest_vol = _bone_volumes(torch.as_tensor(v, dtype=dtype, device=device)[None], corners, centroid, fb, nb)[0]
+        rest_vol = _bone_volumes(torch.as_tensor(v.copy(), dtype=dtype, device=device)[None], corners, centroid, fb, nb)[0]
         scale = torch.clamp(rest_vol.abs(), min=0.1 * float(rest_vol.abs().mean()))
         return MeshRegularisers(edges=torch.as_tensor(e, device=device), incidence=incidence,
                                 rest_sq_lengths=torch.as_tensor(rest_sq, dtype=dtype, device=device),

@@ -1,0 +1,394 @@
+"""Mesh fitting: geodesics, correspondences, FPS, camera recovery, I/O and recovery of ground-truth poses.
+
+Recovery data: dual point clouds ray-cast (bat3r_core.pointmaps) from the toy in natural poses and from a
+procedural long-necked biped (a different rig generated here), with seeds used nowhere else.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from bat3r_core.config_utils import ConfigError
+from bat3r_core.metrics import rotation_error_deg
+from bat3r_core.pointmaps import dual_point_cloud, dual_point_maps
+from bat3r_core.poses import RandomPoseConfig, sample_random_poses, sample_toy_natural_poses
+from bat3r_core.rig import Rig
+from bat3r_core.shards import read_shard
+from bat3r_core.skinning import axis_angle_to_matrix, skin
+from bat3r_core.toy import TOY_BODY_FRAME, build_toy_rig
+from bat3r_core.viewpoints import CameraPriorConfig, body_frame, sample_viewpoints
+from bat3r_core.fitting import FittingAsset, PointCloudInstance, fit_batch, preset
+from bat3r_core.fitting.camera import recover_camera, recover_translation
+from bat3r_core.fitting.config import FittingConfig
+from bat3r_core.fitting.correspondences import nearest_vertices
+from bat3r_core.fitting.geodesics import geodesic_distances, load_or_compute_geodesics, mesh_hash
+from bat3r_core.fitting.io import FIT_COLUMNS, fit_points_file, read_points_npz, write_points_npz
+from bat3r_core.fitting.sampling import farthest_point_sampling, surface_distance
+
+torch.set_num_threads(2)
+IMAGE = 96
+
+
+# ------------------------------------------------------------------------------------------ a second rig
+def _capsule_field(points, caps):
+    a = np.array([c[1] for c in caps])
+    b = np.array([c[2] for c in caps])
+    r = np.array([c[3] for c in caps])
+    ab = b - a
+    t = np.clip(((points[:, None] - a[None]) * ab[None]).sum(-1) / (ab * ab).sum(1)[None], 0, 1)
+    return np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1) - r[None]
+
+
+def build_biped_rig() -> Rig:
+    """A 1.9 m tall long-necked biped (18 joints) made of capsules, meshed by marching cubes."""
+    from skimage.measure import marching_cubes
+
+    j = [("pelvis", None, (0, 1.0, 0)), ("spine", "pelvis", (0, 1.2, 0.02)), ("chest", "spine", (0, 1.38, 0.04)),
+         ("neck.1", "chest", (0, 1.5, 0.06)), ("neck.2", "neck.1", (0, 1.62, 0.08)),
+         ("neck.3", "neck.2", (0, 1.74, 0.1)), ("head", "neck.3", (0, 1.85, 0.12))]
+    for s, x in (("L", 0.12), ("R", -0.12)):
+        j += [(f"thigh.{s}", "pelvis", (x, 0.95, 0)), (f"shin.{s}", f"thigh.{s}", (x, 0.52, 0.02)),
+              (f"foot.{s}", f"shin.{s}", (x, 0.1, 0)), (f"arm.{s}", "chest", (x * 1.9, 1.42, 0.04)),
+              (f"forearm.{s}", f"arm.{s}", (x * 2.2, 1.12, 0.06))]
+    names = [n for n, _, _ in j]
+    pos = {n: np.array(p, float) for n, _, p in j}
+    caps = [("pelvis", pos["pelvis"], pos["spine"], 0.16), ("spine", pos["spine"], pos["chest"], 0.15),
+            ("chest", pos["chest"], pos["neck.1"], 0.15), ("neck.1", pos["neck.1"], pos["neck.2"], 0.06),
+            ("neck.2", pos["neck.2"], pos["neck.3"], 0.055), ("neck.3", pos["neck.3"], pos["head"], 0.05),
+            ("head", pos["head"], pos["head"] + (0, 0.03, 0.16), 0.08)]
+    for s in "LR":
+        caps += [(f"thigh.{s}", pos[f"thigh.{s}"], pos[f"shin.{s}"], 0.075),
+                 (f"shin.{s}", pos[f"shin.{s}"], pos[f"foot.{s}"], 0.06),
+                 (f"foot.{s}", pos[f"foot.{s}"], pos[f"foot.{s}"] + (0, -0.04, 0.16), 0.05),
+                 (f"arm.{s}", pos[f"arm.{s}"], pos[f"forearm.{s}"], 0.05),
+                 (f"forearm.{s}", pos[f"forearm.{s}"], pos[f"forearm.{s}"] + (0.02, -0.26, 0.02), 0.04)]
+    voxel = 0.035
+    lo, hi = np.array([-0.45, -0.05, -0.25]), np.array([0.45, 2.05, 0.45])
+    axes = [np.arange(lo[i], hi[i] + voxel, voxel) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    d = _capsule_field(grid, caps)
+    k = 0.03
+    field = -k * np.log(np.exp(-(d - d.min(1, keepdims=True)) / k).sum(1)) + d.min(1)
+    verts, faces, _, _ = marching_cubes(field.reshape([len(a) for a in axes]), 0.0, spacing=(voxel,) * 3)
+    mesh = trimesh.Trimesh(verts + lo, faces[:, ::-1], process=True)
+    mesh = max(mesh.split(only_watertight=False), key=lambda m: len(m.faces))
+    trimesh.smoothing.filter_taubin(mesh, iterations=8)
+    if mesh.volume < 0:
+        mesh.invert()
+    v = np.asarray(mesh.vertices)
+    dc = _capsule_field(v, caps)
+    per_joint = np.full((len(v), len(names)), np.inf)
+    for ci, c in enumerate(caps):
+        per_joint[:, names.index(c[0])] = np.minimum(per_joint[:, names.index(c[0])], dc[:, ci])
+    w = np.exp(-(per_joint - per_joint.min(1, keepdims=True)) / 0.02)
+    w[w < 1e-3] = 0
+    rest = np.tile(np.eye(4), (len(names), 1, 1))
+    rest[:, :3, 3] = [pos[n] for n in names]
+    parents = np.array([-1 if p is None else names.index(p) for _, p, _ in j])
+    return Rig(name="biped", rest_vertices=v, faces=np.asarray(mesh.faces), joint_names=tuple(names),
+               parents=parents, rest_transforms=rest, skin_weights=w / w.sum(1, keepdims=True))
+
+
+BIPED_FRAME = {"origin": "spine", "forward": ("spine", "chest"), "horizontal": ("thigh.L", "thigh.R")}
+
+
+# ------------------------------------------------------------------------------------------ data
+def _instances(rig: Rig, theta: np.ndarray, frame_joints: dict, seed: int, noise: float, outliers: float):
+    """Ray-cast dual point clouds of posed meshes (P relative to the object depth) and their ground truth."""
+    out = skin(rig.tensors(dtype=torch.float64), torch.as_tensor(theta))
+    verts, joints, g = out.vertices.numpy(), out.joints.numpy(), out.joint_transforms.numpy()
+    idx = {n: i for i, n in enumerate(rig.joint_names)}
+    rng = np.random.default_rng(seed)
+    insts, truth = [], []
+    for i in range(len(theta)):
+        frame = body_frame(joints[i], idx[frame_joints["origin"]], tuple(idx[n] for n in frame_joints["forward"]),
+                           tuple(idx[n] for n in frame_joints["horizontal"]))
+        cam = sample_viewpoints(verts[i], frame, 1, CameraPriorConfig(), IMAGE, IMAGE, rng)[0].camera
+        maps = dual_point_maps(verts[i], rig.rest_vertices, rig.faces, cam, num_layers=4)
+        pc = dual_point_cloud(maps.P, maps.Q, maps.occupancy)
+        P = pc.posed_points.astype(np.float64)
+        P[:, 2] -= maps.object_depth
+        Q = pc.canonical_points.astype(np.float64)
+        if noise > 0:
+            P = P + rng.normal(0, noise, P.shape)
+            Q = Q + rng.normal(0, noise, Q.shape)
+        if outliers > 0:
+            o = rng.choice(len(P), int(outliers * len(P)), replace=False)
+            P[o] = rng.uniform(P.min(0), P.max(0), (len(o), 3))
+            Q[o] = rng.uniform(Q.min(0), Q.max(0), (len(o), 3))
+        insts.append(PointCloudInstance(f"{rig.name}-{i}", P, Q, None, pc.pixels, pc.layers, cam.K, (IMAGE, IMAGE)))
+        gt = verts[i] @ cam.R.T + cam.t
+        gt[:, 2] -= maps.object_depth
+        # the root's excess rotation and the global rotation overlap: compare rotations of the root frame
+        root = g[i, 0, :3, :3] @ rig.rest_transforms[0, :3, :3].T
+        truth.append({"vertices": gt, "camera": cam, "root_rotation": cam.R @ root})
+    return insts, truth
+
+
+def _errors(rig, result, truth):
+    verr, rerr, terr = [], [], []
+    for i, t in enumerate(truth):
+        assert result.status[i] == "ok", result.reason[i]
+        verr.append(np.linalg.norm(result.posed_vertices[i] - t["vertices"], axis=1).mean())
+        root0 = rig.rest_transforms[0, :3, :3]
+        r_root = root0 @ axis_angle_to_matrix(torch.as_tensor(result.excess_rotations[i][0])).numpy() @ root0.T
+        rerr.append(rotation_error_deg(result.cameras[i].rotation @ r_root, t["root_rotation"]))
+        terr.append(np.linalg.norm(result.cameras[i].translation - _root_translation(rig, result, i, t)))
+    return np.array(verr), np.array(rerr), np.array(terr)
+
+
+def _root_translation(rig, result, i, t):
+    """The true camera translation for the fitted root pose (the posed mesh seen from the true camera is fixed)."""
+    cam = t["camera"]
+    root0 = rig.rest_transforms[0, :3, :3]
+    o = rig.rest_transforms[0, :3, 3]
+    r_fit = root0 @ axis_angle_to_matrix(torch.as_tensor(result.excess_rotations[i][0])).numpy() @ root0.T
+    r_cam = result.cameras[i].rotation @ r_fit  # world rotation of the fitted root frame in the camera
+    # true root frame in the camera: R_true_root, origin R o + t; the fitted world maps the root origin o to
+    # R_c (o) + t_c, so matching origins gives t_c = (R o + t) - R_c o
+    del r_cam
+    return cam.R @ o + cam.t - result.cameras[i].rotation @ o
+
+
+@pytest.fixture(scope="module")
+def geo_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("geodesics")
+
+
+@pytest.fixture(scope="module")
+def toy():
+    return build_toy_rig()
+
+
+@pytest.fixture(scope="module")
+def toy_fit(toy, geo_cache):
+    theta, _ = sample_toy_natural_poses(8, seed=913_377)
+    clean, t_clean = _instances(toy, theta[:4], TOY_BODY_FRAME, 55_031, 0.0, 0.0)
+    noisy, t_noisy = _instances(toy, theta[4:], TOY_BODY_FRAME, 55_032, 0.02, 0.10)
+    config = preset("synthetic")
+    asset = FittingAsset.prepare(toy, config, cache_dir=geo_cache)
+    return asset, fit_batch(asset, clean + noisy, config), t_clean + t_noisy
+
+
+# ------------------------------------------------------------------------------------------ geodesics
+def test_geodesics_match_great_circles_on_a_sphere():
+    s = trimesh.creation.icosphere(subdivisions=4)
+    v = np.asarray(s.vertices) / np.linalg.norm(s.vertices, axis=1, keepdims=True)
+    exact = np.arccos(np.clip(v @ v.T, -1, 1))
+    far = exact > 0.2
+    rel = {}
+    for graph in ("edges", "edges_and_diagonals"):
+        d = geodesic_distances(v, np.asarray(s.faces), graph)
+        assert d.dtype == np.float32 and d.shape == (len(v), len(v))
+        assert np.allclose(np.diag(d), 0) and np.allclose(d, d.T, atol=1e-6)
+        rel[graph] = (d[far] - exact[far]) / exact[far]
+    # measured: edges 6.7 % mean (max 23 %), edges + diagonals 1.4 % mean (max 4.9 %)
+    assert rel["edges_and_diagonals"].mean() < 0.02 and rel["edges_and_diagonals"].max() < 0.06
+    assert rel["edges_and_diagonals"].min() > -0.005
+    assert rel["edges"].mean() > 3 * rel["edges_and_diagonals"].mean()
+
+
+def test_geodesics_flat_grid_exact_along_edges(tmp_path):
+    x, y = np.meshgrid(np.arange(6.0), np.arange(4.0))
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1) * 0.1
+    idx = np.arange(24).reshape(4, 6)
+    f = np.concatenate([np.stack([idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, 1:].ravel()], 1),
+                        np.stack([idx[:-1, :-1].ravel(), idx[1:, 1:].ravel(), idx[1:, :-1].ravel()], 1)])
+    d = load_or_compute_geodesics(v, f, tmp_path)
+    assert d[0, 5] == pytest.approx(0.5, abs=1e-6)  # straight along a row
+    assert d[0, 21] == pytest.approx(np.hypot(0.3, 0.3), abs=1e-6)  # along the triangulation's diagonal
+    files = list(tmp_path.glob("geodesics-*.npz"))
+    assert [p.name for p in files] == [f"geodesics-{mesh_hash(v, f)}.npz"]
+    with np.load(files[0], allow_pickle=False) as z:
+        np.testing.assert_array_equal(z["geodesics"], d)
+    assert np.array_equal(load_or_compute_geodesics(v, f, tmp_path), d)
+    load_or_compute_geodesics(v * 2, f, tmp_path)
+    assert len(list(tmp_path.glob("geodesics-*.npz"))) == 2  # another mesh, another cache entry
+    with pytest.raises(ValueError, match="graph must be"):
+        geodesic_distances(v, f, "heat")
+
+
+# ------------------------------------------------------------------------------------------ correspondences, FPS
+def test_nearest_vertices_and_inliers_match_brute_force():
+    rng = np.random.default_rng(3)
+    v = rng.uniform(-1, 1, (300, 3))
+    q = rng.uniform(-1.2, 1.2, (500, 3))
+    conf = rng.uniform(1, 4, 500)
+    c = nearest_vertices(v, q, conf, max_distance=0.1, min_confidence=2.0)
+    d = np.linalg.norm(q[:, None] - v[None], axis=-1)
+    np.testing.assert_array_equal(c.vertex, d.argmin(1))
+    np.testing.assert_allclose(c.distance, d.min(1))
+    np.testing.assert_array_equal(c.inlier, (d.min(1) < 0.1) & (conf >= 2.0))
+    assert 0 < c.inlier.sum() < 500
+    with pytest.raises(ValueError, match=r"confidence must have shape \(500,\)"):
+        nearest_vertices(v, q, conf[:3])
+
+
+def test_fps_matches_slow_reference_under_the_surface_metric():
+    rng = np.random.default_rng(11)
+    geo = rng.uniform(0, 2, (40, 40))
+    geo = (geo + geo.T) / 2
+    np.fill_diagonal(geo, 0)
+    vert = rng.integers(0, 40, 120)
+    off = rng.uniform(0, 0.05, 120)
+    got = farthest_point_sampling(off, vert, geo, 25, np.random.default_rng(5))
+    # slow reference: the farthest point from the chosen set, by explicit loops over D
+    ref = [int(np.random.default_rng(5).integers(120))]
+    while len(ref) < 25:
+        best = max((min(surface_distance(off, vert, geo, c, m) for c in ref), m) for m in range(120) if m not in ref)
+        ref.append(best[1])
+    np.testing.assert_array_equal(got, ref)
+    assert len(farthest_point_sampling(off[:7], vert[:7], geo, 25, rng)) == 7
+    with pytest.raises(ValueError, match="num_samples must be an int >= 1"):
+        farthest_point_sampling(off, vert, geo, 0, rng)
+
+
+# ------------------------------------------------------------------------------------------ camera
+def test_translation_ransac_recovers_the_camera_with_outliers():
+    rng = np.random.default_rng(21)
+    K = np.array([[120.0, 0, 48], [0, 120.0, 50], [0, 0, 1]])
+    X = rng.uniform(-0.8, 0.8, (400, 3))
+    t_true = np.array([0.1, -0.2, 2.5])
+    x = X + t_true
+    uv = np.stack([K[0, 0] * x[:, 0] / x[:, 2] + K[0, 2], K[1, 1] * x[:, 1] / x[:, 2] + K[1, 2]], 1)
+    uv += rng.normal(0, 0.3, uv.shape)
+    bad = rng.choice(400, 120, replace=False)
+    uv[bad] += rng.uniform(20, 60, (120, 2)) * rng.choice([-1, 1], (120, 2))
+    t, inl, rms = recover_translation(X, uv, K, np.random.default_rng(0))
+    assert np.linalg.norm(t - t_true) < 0.02
+    assert inl[bad].sum() < 5 and inl.sum() > 270 and rms < 1.0
+    k_wrong = K.copy()
+    k_wrong[0, 0] = k_wrong[1, 1] = 96.0  # the focal is off by 0.8; factor 1.25 restores it
+    cam = recover_camera(np.eye(3), X, uv, k_wrong, np.random.default_rng(0),
+                         fit_focal=True, focal_factors=np.array([1.0, 1.125, 1.25, 1.4]))
+    assert cam.intrinsics[0, 0] == pytest.approx(120.0)
+    with pytest.raises(ValueError, match=r"points must have shape \(N, 3\) with N >= 2"):
+        recover_translation(X[:1], uv[:1], K, rng)
+
+
+# ------------------------------------------------------------------------------------------ recovery
+def test_toy_recovery_noise_free(toy, toy_fit):
+    _, result, truth = toy_fit
+    verr, rerr, terr = _errors(toy, result, truth)
+    verr, rerr, terr = verr[:4], rerr[:4], terr[:4]
+    assert verr.mean() < 0.01, verr
+    assert verr.max() < 0.02, verr
+    assert rerr.max() < 2.0, rerr
+    assert terr.mean() < 0.05, terr
+    assert np.all(result.inlier_ratio[:4] > 0.95)
+    assert np.all(result.residual_chamfer[:4] < 0.04)
+    assert np.all(result.num_control_points[:4] == 200)
+
+
+def test_toy_recovery_with_noise_and_outliers(toy, toy_fit):
+    _, result, truth = toy_fit
+    verr, rerr, _ = _errors(toy, result, truth)
+    assert verr[4:].mean() < 0.04, verr
+    assert rerr[4:].mean() < 4.0, rerr
+    assert np.all(result.inlier_ratio[4:] < result.inlier_ratio[:4].min())  # the outliers were found
+    assert np.all(result.residual_chamfer[4:] > result.residual_chamfer[:4].max())
+
+
+def test_second_rig_recovery(geo_cache):
+    rig = build_biped_rig()
+    assert rig.num_joints == 17 and len(rig.left_right_pairs) == 5
+    theta, _ = sample_random_poses(rig, 4, seed=613_001, config=RandomPoseConfig(sigma1=0.05, sigma2=0.3))
+    clean, t_clean = _instances(rig, theta[:2], BIPED_FRAME, 72_101, 0.0, 0.0)
+    noisy, t_noisy = _instances(rig, theta[2:], BIPED_FRAME, 72_102, 0.02, 0.10)
+    config = preset("synthetic", {"inlier_distance": 0.05})  # the reference's threshold for non-horse categories
+    result = fit_batch(FittingAsset.prepare(rig, config, cache_dir=geo_cache), clean + noisy, config)
+    verr, rerr, _ = _errors(rig, result, t_clean + t_noisy)
+    assert verr[:2].mean() < 0.01, verr
+    assert rerr[:2].max() < 2.0, rerr
+    assert verr[2:].mean() < 0.04, verr
+
+
+def test_batched_fit_equals_one_at_a_time(toy, toy_fit):
+    asset, _, _ = toy_fit
+    theta, _ = sample_toy_natural_poses(3, seed=913_378)
+    insts, _ = _instances(toy, theta, TOY_BODY_FRAME, 55_033, 0.01, 0.05)
+    config = preset("synthetic", {"steps": 12, "repulsion_refresh_steps": 4})
+    batch = fit_batch(asset, insts, config)
+    for i, inst in enumerate(insts):
+        one = fit_batch(asset, [inst], config)
+        np.testing.assert_allclose(batch.excess_rotations[i], one.excess_rotations[0], atol=2e-5)
+        np.testing.assert_allclose(batch.global_rotation[i], one.global_rotation[0], atol=2e-5)
+        np.testing.assert_allclose(batch.global_translation[i], one.global_translation[0], atol=2e-5)
+        np.testing.assert_allclose(batch.posed_vertices[i], one.posed_vertices[0], atol=1e-4)
+        for name, v in batch.losses.items():
+            np.testing.assert_allclose(v[i], one.losses[name][0], rtol=1e-3, atol=1e-7)
+        assert batch.num_control_points[i] == one.num_control_points[0]
+
+
+def test_too_few_points_are_recorded_not_fitted(toy, toy_fit):
+    asset, _, _ = toy_fit
+    theta, _ = sample_toy_natural_poses(1, seed=913_379)
+    (good,), _ = _instances(toy, theta, TOY_BODY_FRAME, 55_034, 0.0, 0.0)
+    few = PointCloudInstance("few", good.posed_points[:10], good.canonical_points[:10])
+    far = PointCloudInstance("far", good.posed_points, good.canonical_points + 5.0)
+    bad = PointCloudInstance("bad", good.posed_points, good.canonical_points[:5])
+    res = fit_batch(asset, [few, good, far, bad], preset("synthetic", {"steps": 3}))
+    assert res.status == ["too_few_points", "ok", "too_few_points", "bad_input"]
+    assert "10 inlier points (of 10) < min_valid_points 30" in res.reason[0]
+    assert "canonical_points must have the shape" in res.reason[3]
+    assert np.isnan(res.excess_rotations[[0, 2, 3]]).all() and np.isfinite(res.excess_rotations[1]).all()
+    assert res.cameras[0] is None and res.cameras[1] is not None
+    assert res.inlier_ratio[2] == 0.0
+
+
+def test_config_validation_and_presets():
+    s, r = preset("synthetic"), preset("real")
+    assert (s.steps, s.weight_edge, s.weight_repulsion, s.weight_scale, s.enable_bone_scales) == (200, 100, 1, 0, False)
+    assert (r.steps, r.weight_angle, r.weight_edge, r.weight_repulsion, r.weight_scale) == (300, 3e-5, 3000, 5, 0.01)
+    assert r.enable_bone_scales and s.lr_global == 1e-3 and s.lr_rotations == 2e-2 and s.huber_delta == 0.1
+    assert s.geodesic_threshold_for(2.7) == pytest.approx(0.5)
+    assert s.geodesic_threshold_for(2.361) == pytest.approx(0.5 * 2.361 / 2.7)
+    assert preset("real", {"inlier_distance": 0.05}).inlier_distance == 0.05
+    with pytest.raises(ConfigError, match=r"fitting.real: unknown key\(s\) \['stepz'\]"):
+        preset("real", {"stepz": 3})
+    with pytest.raises(ValueError, match="preset must be one of"):
+        preset("fast")
+    with pytest.raises(ConfigError, match="bone_scale_bounds must satisfy"):
+        FittingConfig(bone_scale_bounds=(1.5, 2.0))
+    with pytest.raises(ConfigError, match="steps must be an int >= 1"):
+        FittingConfig(steps=0)
+
+
+def test_real_preset_fits_with_bone_scales(toy, toy_fit):
+    asset, _, _ = toy_fit
+    theta, _ = sample_toy_natural_poses(1, seed=913_380)
+    insts, _ = _instances(toy, theta, TOY_BODY_FRAME, 55_035, 0.0, 0.0)
+    res = fit_batch(asset, insts, preset("real", {"steps": 30}))
+    assert res.status == ["ok"]
+    s = res.bone_scales[0]
+    assert np.all((s >= 0.5) & (s <= 2.0)) and np.ptp(s) > 0  # optimised within the bounds
+    assert res.losses["scale"][0] > 0
+
+
+# ------------------------------------------------------------------------------------------ I/O and the CLI function
+def test_points_npz_round_trip_and_fit_points_file(toy, toy_fit, tmp_path, geo_cache):
+    theta, _ = sample_toy_natural_poses(2, seed=913_381)
+    insts, _ = _instances(toy, theta, TOY_BODY_FRAME, 55_036, 0.0, 0.0)
+    insts = [PointCloudInstance(i.sample_id, i.posed_points, i.canonical_points, np.full(len(i.posed_points), 3.0),
+                                i.pixels, i.layers, i.intrinsics, i.image_size) for i in insts]
+    path = write_points_npz(tmp_path / "points.npz", insts)
+    back = read_points_npz(path)
+    assert [b.sample_id for b in back] == [i.sample_id for i in insts]
+    for a, b in zip(insts, back):
+        np.testing.assert_allclose(b.posed_points, a.posed_points, atol=1e-6)
+        np.testing.assert_array_equal(b.layers, a.layers)
+        assert b.image_size == (IMAGE, IMAGE)
+    out = fit_points_file("toy", path, "synthetic", tmp_path / "fits", shard_size=1,
+                          overrides={"steps": 5}, cache_dir=geo_cache)
+    assert out["num_instances"] == 2 and out["num_ok"] == 2 and len(out["shards"]) == 2
+    table, arrays = read_shard(tmp_path / "fits", 1)
+    assert tuple(table.column_names) == FIT_COLUMNS
+    row = table.to_pylist()[0]
+    assert row["status"] == "ok" and row["sample_id"] == insts[1].sample_id and row["mean_confidence"] == 3.0
+    assert len(row["excess_rotations"]) == 3 * toy.num_joints and row["width"] == IMAGE
+    assert arrays["posed_vertices"].shape == (1, toy.num_vertices, 3)
+    np.savez(tmp_path / "broken.npz", offsets=np.array([0, 5]), sample_id=np.array(["a"]))
+    with pytest.raises(ValueError, match=r"missing array\(s\)"):
+        read_points_npz(tmp_path / "broken.npz")
