@@ -32,7 +32,7 @@ def _posed(rig, joint_rotations: dict) -> torch.Tensor:
 
 def test_edge_term_zero_at_rest_grows_with_stretch_and_matches_a_loop(coarse):
     rig, reg = coarse
-    rest = torch.as_tensor(rig.rest_vertices)[None]
+    rest = torch.as_tensor(rig.rest_vertices.copy())[None]
     assert reg.edge(rest).item() == pytest.approx(0.0, abs=1e-18)
     values = [reg.edge(rest * (1 + eps)).item() for eps in (0.02, 0.05, 0.1)]
     assert 0 < values[0] < values[1] < values[2]
@@ -47,7 +47,7 @@ def test_edge_term_zero_at_rest_grows_with_stretch_and_matches_a_loop(coarse):
 
 def test_volume_term_zero_at_rest_grows_with_volume_loss_and_matches_a_loop(coarse):
     rig, reg = coarse
-    rest = torch.as_tensor(rig.rest_vertices)[None]
+    rest = torch.as_tensor(rig.rest_vertices.copy())[None]
     assert reg.volume(rest).item() == pytest.approx(0.0, abs=1e-18)
     # rigid motion keeps every local volume
     rot = torch.as_tensor(trimesh.transformations.rotation_matrix(0.7, [1, 2, 3])[:3, :3])
