@@ -233,7 +233,17 @@ class BlenderRenderer:
         nt.links.new(noise.outputs["Fac"], self.ground_ramp.inputs["Fac"])
         nt.links.new(sep.outputs["Z"], horizon.inputs["Value"])
         nt.links.new(horizon.outputs["Result"], mix.inputs["Factor"])
-        nt.links.new(self.ground_ramp.outputs["Color"], mix.inputs["A"])
+        # aerial perspective: the ground fades into a haze colour towards the horizon
+        distance = nt.nodes.new("ShaderNodeMapRange")  # 0 looking straight down, 1 at the horizon
+        distance.inputs["From Min"].default_value = -0.15
+        distance.inputs["From Max"].default_value = 0.0
+        distance.inputs["To Max"].default_value = 0.8
+        self.haze_mix = nt.nodes.new("ShaderNodeMix")
+        self.haze_mix.data_type = "RGBA"
+        nt.links.new(sep.outputs["Z"], distance.inputs["Value"])
+        nt.links.new(distance.outputs["Result"], self.haze_mix.inputs["Factor"])
+        nt.links.new(self.ground_ramp.outputs["Color"], self.haze_mix.inputs["A"])
+        nt.links.new(self.haze_mix.outputs["Result"], mix.inputs["A"])
         nt.links.new(self.sky_tex.outputs["Color"], mix.inputs["B"])
         nt.links.new(mix.outputs["Result"], self.sky_bg.inputs["Color"])
         nt.links.new(self.sky_bg.outputs["Background"], out.inputs["Surface"])
@@ -339,6 +349,8 @@ class BlenderRenderer:
             gain = rng.uniform(0.9, 1.4)  # ground radiance ~ albedo x irradiance / pi
             grass = gain * np.array([rng.uniform(0.06, 0.12), rng.uniform(0.12, 0.22), rng.uniform(0.02, 0.06)])
             earth = gain * np.array([rng.uniform(0.16, 0.26), rng.uniform(0.12, 0.18), rng.uniform(0.07, 0.11)])
+            haze = gain * np.array([0.20, 0.23, 0.26]) * rng.uniform(0.8, 1.1)
+            self.haze_mix.inputs["B"].default_value = (*haze, 1.0)
             ramp = self.ground_ramp.color_ramp.elements
             ramp[0].color = (*earth, 1.0)
             ramp[1].color = (*grass, 1.0)
