@@ -1,19 +1,23 @@
 """Plan stage: render jobs. Iteration 0 samples cameras around the rest-pose mesh (``canonical``); the random-poses
-baseline samples random poses (``random_pose``). Jobs are written as ``part-NNNNN.parquet`` job files, one per
-render shard."""
+baseline samples random poses (``random_pose``); later iterations plan the estimated and augmented views of each
+fitted instance (``plan_views_shard``). Jobs are written as ``part-NNNNN.parquet`` job files, one per render
+shard."""
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any, Mapping
 
+import pyarrow.parquet as pq
+
 from bat3r_core import datasets, shards
 from bat3r_core.config_utils import from_mapping
+from bat3r_core.fitting.augment import AugmentConfig, plan_views_for_fits
 from bat3r_core.render.jobs import write_jobs
 from bat3r_core.rig_io import load_rig
 from bat3r_core.viewpoints import CameraPriorConfig
-from tasks._cache import stage_task
+from tasks._cache import shard_input_files, stage_task
 
-__all__ = ["plan_sampled_jobs"]
+__all__ = ["plan_sampled_jobs", "plan_views_shard"]
 
 _BUILDERS = {"canonical": datasets.canonical_jobs, "random_pose": datasets.random_pose_jobs}
 
@@ -41,3 +45,28 @@ def plan_sampled_jobs(asset: str, out_dir: str, config: Mapping[str, Any]) -> di
              for i, s in enumerate(range(0, len(jobs), shard_size))]
     return {"stage": "plan", "files": [str(f) for f in files], "content_hash": shards.content_hash(files),
             "n_jobs": len(jobs), "n_shards": len(files)}
+
+
+@stage_task("plan", "bat3r_core.fitting.augment",
+            inputs=lambda p: [Path(p["asset"])] + shard_input_files(p["fit_dir"], p["index"]),
+            output=lambda p: Path(p["out_dir"]) / f"{shards.shard_name(p['index'])}.parquet",
+            task_run_name="plan-{index}")
+def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
+    """Render jobs for the fitted rows of fit shard ``index`` of ``fit_dir``: the estimated view and 1–2 augmented
+    views per fit (``bat3r_core.fitting.augment.plan_views_for_fits``; rows that are not ok or have no camera are
+    skipped), written to ``out_dir/part-<index>.parquet``. config: ``{"augment": AugmentConfig mapping,
+    "body_frame": {origin, forward, horizontal}, "seed": int}``; shard ``index`` draws with seed
+    ``seed * 1_000_003 + index``.
+    Returns ``stage, index, files, content_hash, n_jobs, n_fits``."""
+    augment = from_mapping(AugmentConfig, config["augment"], "augment")
+    rows = pq.read_table(shards.shard_paths(fit_dir, index).parquet).to_pylist()
+    jobs = plan_views_for_fits(load_rig(asset), rows, dict(config["body_frame"]), augment,
+                               seed=_shard_seed(int(config["seed"]), index))
+    path = write_jobs(jobs, Path(out_dir) / f"{shards.shard_name(index)}.parquet")
+    return {"stage": "plan", "index": index, "files": [str(path)], "content_hash": shards.content_hash([path]),
+            "n_jobs": len(jobs), "n_fits": len(rows)}
+
+
+def _shard_seed(seed: int, index: int) -> int:
+    """One seed per (run seed, shard index) for ``plan_views_for_fits`` (which seeds row k with ``[seed, k]``)."""
+    return int(seed) * 1_000_003 + int(index)
