@@ -34,8 +34,9 @@ class RenderConfig:
         recycle_every: a worker process renders at most this many images, then a fresh one takes over
             (bpy memory grows over many renders).
         retries: how many times the remaining jobs of a shard are retried after the worker process crashed.
-        timeout_s: seconds allowed per image (plus ``startup_timeout_s`` per process) before the process is killed.
-        startup_timeout_s: seconds allowed for a worker process to start and load the asset.
+        timeout_s: a worker whose scene is ready and that finishes no image for this many seconds is killed (its
+            unfinished jobs are retried).
+        startup_timeout_s: seconds allowed for a worker process to start and set up its scene.
         num_layers: K, layers of the ray-cast dual point maps.
         max_bounces: Cycles light bounces.
     """

@@ -102,8 +102,8 @@ def _tail(path: Path, n: int = 1500) -> str:
 
 def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir: Path, log_path: Path,
                  config: RenderConfig, env: dict, on_worker_start: Callable[[subprocess.Popen], None] | None
-                 ) -> tuple[int, bool]:
-    """One worker process over ``rows``; returns (exit code, killed for lack of progress)."""
+                 ) -> tuple[int, bool, bool]:
+    """One worker process over ``rows``; returns (exit code, killed for lack of progress, start-up succeeded)."""
     cmd = [sys.executable, "-m", "bat3r_core.render.worker", "--spec", str(spec_path), "--results",
            str(results_path), "--out", str(workdir)]
     with open(log_path, "a", encoding="utf-8") as log:
@@ -124,21 +124,24 @@ def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir:
             on_worker_start(proc)
         wanted = {r["index"] for r in rows}
         done = len(wanted & set(_read_results(results_path)))
+        ready_file = workdir / f"ready-{proc.pid}"
         last_progress = time.monotonic()
-        started = False
+        ready = False
         killed = False
         while proc.poll() is None:
             time.sleep(0.05)
+            if not ready and ready_file.exists():
+                ready, last_progress = True, time.monotonic()
             now_done = len(wanted & set(_read_results(results_path)))
             if now_done != done:
-                done, last_progress, started = now_done, time.monotonic(), True
-            limit = config.timeout_s + (0.0 if started else config.startup_timeout_s)
+                done, last_progress = now_done, time.monotonic()
+            limit = config.timeout_s if ready else config.startup_timeout_s
             if time.monotonic() - last_progress > limit:
                 proc.kill()
                 killed = True
                 proc.wait()
         feeder.join(timeout=5)
-        return proc.returncode, killed
+        return proc.returncode, killed, ready or ready_file.exists()
 
 
 def _render_images(jobs: Sequence[RenderJob], assets: SceneAssets, config: RenderConfig, workdir: Path,
@@ -164,7 +167,7 @@ def _render_images(jobs: Sequence[RenderJob], assets: SceneAssets, config: Rende
     while pending:
         batch = pending[:config.recycle_every]
         processes += 1
-        rc, killed = _run_process([rows[i] for i in batch], spec_path, results_path, workdir, log_path, config,
+        rc, killed, ready = _run_process([rows[i] for i in batch], spec_path, results_path, workdir, log_path, config,
                                   env, on_worker_start)
         results = _read_results(results_path)
         pending = [i for i in pending if i not in results and i not in failed]
@@ -173,8 +176,10 @@ def _render_images(jobs: Sequence[RenderJob], assets: SceneAssets, config: Rende
             continue
         crashes += 1
         why = ("killed after no progress for its timeout" if killed else f"exited with code {rc}")
+        if not ready:
+            why += " before its scene was ready"
         suspect = unfinished[0]
-        blame[suspect] = blame.get(suspect, 0) + 1
+        blame[suspect] = blame.get(suspect, 0) + int(ready)  # a start-up failure is no job's fault
         if blame[suspect] >= 2:
             failed[suspect] = {"status": "failed", "reason": f"the render worker crashed twice on this job "
                                                              f"({why}); log: {_tail(log_path, 300)}"}

@@ -7,7 +7,7 @@ Run in its own process, one per shard (or per ``recycle_every`` images), by :mod
 ``SPEC.json`` holds the :class:`~bat3r_core.render.config.SceneAssets` (``asset``, ``textures``, ``envmaps``), the
 :class:`~bat3r_core.render.config.RenderConfig` (``config``) and ``debug_vertices``. Jobs arrive on stdin, one JSON
 object per line (the columns of :mod:`bat3r_core.render.jobs` plus ``index``). For each job the worker writes
-``WORKDIR/job-<index>.npz`` (``rgb (H, W, 3) uint8``, ``mask (H, W) bool`` from the Object Index pass, and with
+``WORKDIR/ready-<pid>`` once the scene is set up, then ``WORKDIR/job-<index>.npz`` (``rgb (H, W, 3) uint8``, ``mask (H, W) bool`` from the Object Index pass, and with
 ``debug_vertices`` the depsgraph-evaluated ``posed_vertices (V, 3)`` in bat3r's world frame and rig vertex order),
 then appends one JSON line ``{"index", "sample_id", "status", "reason", "seconds", "cpu_seconds"}`` to
 ``RESULTS.jsonl`` (wall and process CPU time of the job). A job
@@ -459,6 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     renderer = BlenderRenderer(assets, config, out, debug_vertices=bool(spec.get("debug_vertices", False)))
     _log(f"scene ready in {time.perf_counter() - t0:.2f} s (vertex map error {renderer.vertex_map_error:.2e} m)")
+    (out / f"ready-{os.getpid()}").touch()  # tells the runner that start-up succeeded
     with open(args.results, "a", encoding="utf-8") as results:
         for line in sys.stdin:
             if not line.strip():

@@ -325,8 +325,25 @@ def test_worker_that_cannot_start_fails_the_shard_after_retries(tmp_path, toy_ri
     result = render_shard([job], SceneAssets(str(toy_glb)), tmp_path, 0, cfg, rig=toy_rig)
     table, _ = read_shard(tmp_path, 0)
     assert table.column("status").to_pylist() == ["failed"]
-    assert "OPTIX" in table.column("reason")[0].as_py()
+    reason = table.column("reason")[0].as_py()
+    assert "OPTIX" in reason and "before its scene was ready" in reason
     assert result.processes == 2 and result.crashes == 2
+
+
+@pytest.mark.blender
+def test_hanging_worker_is_killed_and_its_job_failed(tmp_path, toy_rig, toy_glb):
+    from bat3r_core.render.runner import render_shard
+
+    jobs = [_job(toy_rig, f"s{i}", np.zeros((toy_rig.num_joints, 3)), 96, seed=i) for i in range(2)]
+    # one image takes far longer than the timeout: each worker is killed during its first job
+    cfg = RenderConfig(resolution=96, samples=256, timeout_s=0.2, retries=3)
+    result = render_shard(jobs, SceneAssets(str(toy_glb)), tmp_path, 0, cfg, rig=toy_rig)
+    table, _ = read_shard(tmp_path, 0)
+    assert table.column("status").to_pylist() == ["failed", "failed"]
+    reasons = table.column("reason").to_pylist()
+    assert "crashed twice on this job (killed after no progress" in reasons[0]
+    assert "crashed twice on this job" in reasons[1]
+    assert result.crashes == 4 and result.processes == 4
 
 
 @pytest.mark.blender
