@@ -17,7 +17,6 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from bat3r_core.cameras import PinholeCamera
 from bat3r_core.config_utils import ConfigError
 from bat3r_core.render.config import RENDER_PRESETS, RenderConfig, SceneAssets, render_config
 from bat3r_core.render.jobs import (JobSchemaError, RenderJob, job_from_dict, job_to_dict, jobs_from_table,
