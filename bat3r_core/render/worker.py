@@ -112,6 +112,9 @@ class BlenderRenderer:
             if o is not self.mesh and o is not self.armature:
                 o.hide_render = True
         self.mesh.pass_index = MESH_PASS_INDEX
+        if self.mesh.parent is not self.armature:  # the similarity moves the armature; the mesh must follow it
+            self.mesh.parent = self.armature
+            self.mesh.matrix_parent_inverse = self.armature.matrix_world.inverted()
         self.a0 = np.array(self.armature.matrix_world)
         c = np.linalg.inv(self.a0) @ _W4  # canonical (glTF) frame -> armature space
         c_inv = np.linalg.inv(c)
@@ -134,6 +137,9 @@ class BlenderRenderer:
         world = self._to_bat3r(local.reshape(-1, 3), np.array(self.mesh.matrix_world))
         dist, self.vertex_map = cKDTree(world).query(self.rig.rest_vertices)
         self.vertex_map_error = float(dist.max())
+        if self.debug_vertices and self.vertex_map_error > 1e-4:
+            raise RuntimeError(f"{self.assets.asset}: the imported mesh does not match the rig's rest vertices "
+                               f"(up to {self.vertex_map_error:.3g} m apart); cannot report posed vertices")
 
     @staticmethod
     def _to_bat3r(local: np.ndarray, matrix_world: np.ndarray) -> np.ndarray:
