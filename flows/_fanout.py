@@ -14,6 +14,7 @@ from typing import Any, Mapping, Sequence
 
 from prefect import Task
 from prefect.client.orchestration import get_client
+from prefect.exceptions import ObjectNotFound
 from prefect.artifacts import create_progress_artifact, update_progress_artifact
 from prefect.futures import as_completed
 from prefect.logging import get_run_logger
@@ -51,15 +52,20 @@ def _label(call: Mapping[str, Any], position: int) -> str:
     return f"part-{call['index']:05d}" if "index" in call else f"call-{position}"
 
 
-def _attempts(future: Any, wait_s: float = 10.0) -> int:
-    """Runs of a finished task run, as the API records it (task states reach the API asynchronously)."""
+def _attempts(future: Any, wait_s: float = 30.0) -> int | None:
+    """Runs of a finished task run as the API records it (task states reach the API asynchronously, so poll);
+    None when the API has not recorded the final state within ``wait_s``."""
     deadline = time.monotonic() + wait_s
     with get_client(sync_client=True) as client:
-        while True:
-            run = client.read_task_run(future.task_run_id)
-            if (run.state is not None and run.state.is_final()) or time.monotonic() > deadline:
+        while time.monotonic() < deadline:
+            try:
+                run = client.read_task_run(future.task_run_id)
+            except ObjectNotFound:
+                run = None
+            if run is not None and run.state is not None and run.state.is_final():
                 return int(run.run_count)
-            time.sleep(0.2)
+            time.sleep(0.25)
+    return None
 
 
 def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], *, progress_key: str,
@@ -100,8 +106,9 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
             records[i] = record
         except Exception as exc:  # the task failed after its retries: report the shard, apply the policy
             attempts = _attempts(fut)
-            failures.append(ShardFailure(label, f"{type(exc).__name__}: {exc} (after {attempts} attempt(s))"))
-            logger.error("%s %s failed after %d attempt(s): %s", stage, label, attempts, exc)
+            tries = f"after {attempts} attempt(s)" if attempts is not None else "after its retries"
+            failures.append(ShardFailure(label, f"{type(exc).__name__}: {exc} ({tries})"))
+            logger.error("%s %s failed (%s): %s", stage, label, tries, exc)
         states[i] = state.name
         done += 1
         update_progress_artifact(progress_id, 100.0 * done / max(len(calls), 1),
