@@ -49,6 +49,13 @@ done
 if ! prefect work-pool inspect "$POOL" >/dev/null 2>&1; then
     prefect work-pool create "$POOL" --type process >/dev/null
 fi
+# One GPU task per GPU across every flow run of this server: a tag concurrency limit on the GPU tasks' tag.
+if command -v nvidia-smi >/dev/null 2>&1; then
+    NGPU="$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)"
+    if [[ "${NGPU:-0}" -gt 0 ]]; then
+        prefect concurrency-limit create bat3r-gpu "$NGPU" >/dev/null && echo "tag limit bat3r-gpu = $NGPU"
+    fi
+fi
 prefect --no-prompt deploy --all --prefect-file deploy/prefect.yaml >"$STATE/deploy.log" 2>&1 \
     || { cat "$STATE/deploy.log" >&2; exit 1; }
 grep -o "Deployment '[^']*' successfully created[^.]*" "$STATE/deploy.log" || true
