@@ -424,18 +424,32 @@ def dual_point_cloud(P: np.ndarray, Q: np.ndarray, occupancy: np.ndarray, confid
 
 
 # ---------------------------------------------------------------------------------------------- storage
-def encode_float16(P: np.ndarray, Q: np.ndarray, occupancy: np.ndarray, object_depth: np.ndarray | float
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """float16 storage of dual point maps: P relative to the object depth, Q as is.
+def storage_dtype(canonical_vertices: np.ndarray, max_scale: float = 1.0) -> type:
+    """The on-disk dtype of P/Q for a rig: float16 when every canonical coordinate (and the posed extent about
+    the object depth, at most the rig's extent times ``max_scale``) stays below :data:`FLOAT16_MAX_ABS_M`, where
+    float16 keeps the round trip under 0.49 mm per coordinate; float32 otherwise (large animals, off-centre
+    canonical frames). Decoding handles both."""
+    v = np.asarray(canonical_vertices, dtype=np.float64)
+    extent = float(np.linalg.norm(np.ptp(v, axis=0))) * max_scale
+    fits = float(np.abs(v).max()) < 0.98 * FLOAT16_MAX_ABS_M and extent < 0.98 * FLOAT16_MAX_ABS_M * 2
+    return np.float16 if fits else np.float32
+
+
+def encode_float16(P: np.ndarray, Q: np.ndarray, occupancy: np.ndarray, object_depth: np.ndarray | float,
+                   dtype: type = np.float16) -> tuple[np.ndarray, np.ndarray]:
+    """Compact storage of dual point maps: P relative to the object depth, Q as is.
 
     Args:
         P, Q: (..., H, W, K, 3) metres; occupancy: (..., H, W, K) bool; object_depth: (...) metres.
+        dtype: ``np.float16`` (default) or ``np.float32`` (see :func:`storage_dtype`).
     Returns:
-        ``(P16, Q16)`` float16 with ``P16 = P - (0, 0, object_depth)`` on occupied entries and 0 elsewhere.
+        ``(P_rel, Q)`` of ``dtype`` with ``P_rel = P - (0, 0, object_depth)`` on occupied entries and 0 elsewhere.
     Raises:
-        ValueError if an occupied coordinate of ``P16`` or ``Q`` reaches :data:`FLOAT16_MAX_ABS_M` (float16 would
-        lose more than 0.49 mm there: store float32 instead).
+        ValueError if ``dtype`` is float16 and an occupied coordinate of ``P_rel`` or ``Q`` reaches
+        :data:`FLOAT16_MAX_ABS_M` (float16 would lose more than 0.49 mm there: store float32 instead).
     """
+    if dtype not in (np.float16, np.float32):
+        raise ValueError(f"dtype must be np.float16 or np.float32, got {dtype!r}")
     P = np.asarray(P, dtype=np.float64)
     Q = np.asarray(Q, dtype=np.float64)
     occ = np.asarray(occupancy, dtype=bool)
@@ -449,6 +463,8 @@ def encode_float16(P: np.ndarray, Q: np.ndarray, occupancy: np.ndarray, object_d
     rel[..., 2] -= d[..., None, None, None]
     rel[~occ] = 0.0
     Qz = np.where(occ[..., None], Q, 0.0)
+    if dtype is np.float32:
+        return rel.astype(np.float32), Qz.astype(np.float32)
     for name, a in (("P - object_depth", rel), ("Q", Qz)):
         worst = float(np.abs(a).max()) if a.size else 0.0
         if worst >= FLOAT16_MAX_ABS_M:

@@ -248,7 +248,7 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
         that failed hold zeros. Parquet rows: the job's columns plus ``status``, ``reason``, ``render_seconds``,
         ``mask_iou``.
     """
-    from bat3r_core.pointmaps import encode_float16
+    from bat3r_core.pointmaps import encode_float16, storage_dtype
     from bat3r_core.rig_io import load_rig
     from bat3r_core.shards import shard_name, write_shard
 
@@ -279,9 +279,11 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
     results, processes, crashes = _render_images(jobs, assets, config, workdir, debug_vertices, gpu_index,
                                                  on_worker_start)
     n, k = len(jobs), config.num_layers
+    # float16 labels when the rig is small enough for sub-millimetre round trips, float32 otherwise
+    label_dtype = storage_dtype(rig.rest_vertices, max((abs(j.global_scale) for j in jobs), default=1.0))
     arrays = {
         "rgb": np.zeros((n, height, width, 3), np.uint8), "mask": np.zeros((n, height, width), bool),
-        "P": np.zeros((n, height, width, k, 3), np.float16), "Q": np.zeros((n, height, width, k, 3), np.float16),
+        "P": np.zeros((n, height, width, k, 3), label_dtype), "Q": np.zeros((n, height, width, k, 3), label_dtype),
         "occupancy": np.zeros((n, height, width, k), bool), "object_depth": np.zeros(n, np.float32),
         "K_intrinsics": np.zeros((n, 3, 3), np.float32),
     }
@@ -305,7 +307,8 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
                 elif iou < min_mask_iou and arrays["mask"][i].sum() >= 50:
                     status, reason = "mask_mismatch", (f"Blender mask and ray-cast occupancy disagree "
                                                        f"(IoU {iou:.3f} < {min_mask_iou})")
-                p16, q16 = encode_float16(maps.P, maps.Q, maps.occupancy, np.float64(maps.object_depth))
+                p16, q16 = encode_float16(maps.P, maps.Q, maps.occupancy, np.float64(maps.object_depth),
+                                          label_dtype)
                 arrays["P"][i], arrays["Q"][i] = p16, q16
                 arrays["occupancy"][i] = maps.occupancy
                 arrays["object_depth"][i] = maps.object_depth

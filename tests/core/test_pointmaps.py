@@ -239,3 +239,25 @@ def test_float16_storage_stays_below_one_millimetre_on_the_toy_at_3_to_8_m():
     big[..., 0] = FLOAT16_MAX_ABS_M + 0.1
     with pytest.raises(ValueError, match=r"Q reaches 2.100 m >= 2.0 m: float16 would lose > 0.49 mm"):
         encode_float16(np.zeros((1, 1, 1, 3)), big, np.ones((1, 1, 1), bool), 0.0)
+
+
+def test_storage_dtype_falls_back_to_float32_for_large_rigs():
+    from bat3r_core.pointmaps import storage_dtype
+
+    small = np.array([[-1.0, 0.0, -1.2], [1.0, 1.9, 1.2]])
+    large = small * np.array([1.0, 1.2, 1.0])  # a head above 2 m
+    assert storage_dtype(small) is np.float16
+    assert storage_dtype(large) is np.float32
+    assert storage_dtype(small, max_scale=3.0) is np.float32
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(4, 4, 2, 3)) + [0.0, 0.0, 6.0]
+    Q = rng.normal(size=(4, 4, 2, 3)) * 3.0  # beyond float16's sub-millimetre range
+    occ = np.ones((4, 4, 2), bool)
+    from bat3r_core.pointmaps import decode_float16, encode_float16
+
+    with pytest.raises(ValueError, match="store float32"):
+        encode_float16(P, Q, occ, 6.0)
+    p32, q32 = encode_float16(P, Q, occ, 6.0, dtype=np.float32)
+    assert p32.dtype == np.float32
+    P2, Q2 = decode_float16(p32, q32, occ, np.float32(6.0))
+    assert np.abs(P2 - P).max() < 1e-5 and np.abs(Q2 - Q).max() < 1e-5
