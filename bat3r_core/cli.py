@@ -116,6 +116,39 @@ def _cmd_predict(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_render(args: argparse.Namespace) -> int:
+    from .catalog import load_catalog
+    from .render.runner import render_command
+
+    catalog = load_catalog(args.catalog)
+    result = render_command(args.jobs, args.asset, args.out, config=catalog.render_config(args.preset),
+                            textures=args.texture or None, envmaps=tuple(args.envmap or ()),
+                            shard_index=args.shard)
+    print(f"rendered {result.num_ok} ok, {result.num_failed} failed in {result.seconds:.1f} s "
+          f"({result.processes} worker process(es), {result.crashes} crash(es)): {result.parquet}")
+    if result.num_failed:
+        from .shards import read_shard
+
+        table, _ = read_shard(args.out, args.shard, with_arrays=False)
+        for row in table.select(["sample_id", "status", "reason"]).to_pylist():
+            if row["status"] != "ok":
+                print(f"  {row['sample_id']}: {row['status']}: {row['reason']}")
+    return 0
+
+
+def _cmd_collection_toy(args: argparse.Namespace) -> int:
+    from .catalog import load_catalog
+    from .datasets import collection_toy_command
+
+    catalog = load_catalog(args.catalog)
+    col = collection_toy_command(args.n, args.out, seed=args.seed, resolution=args.resolution,
+                                 config=catalog.render_config(args.preset), force=args.force)
+    state = "reused" if col.reused else "rendered"
+    print(f"{state} {len(col.sample_ids)} images: {col.images_dir} (masks: {col.masks_dir}); hidden ground truth: "
+          f"{col.ground_truth_dir}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bat3r", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -132,6 +165,29 @@ def build_parser() -> argparse.ArgumentParser:
     toy.add_argument("--out", type=Path, required=True, help="output .glb path")
     toy.add_argument("--coat", default="bay", help="procedural coat texture (bay, chestnut, grey, pinto)")
     toy.set_defaults(func=_cmd_asset_toy)
+
+    rd = sub.add_parser("render", help="render one shard of render jobs with Blender (+ exact ray-cast labels)")
+    rd.add_argument("--jobs", required=True, type=Path, help="render jobs (Parquet, docs/CONVENTIONS.md schema)")
+    rd.add_argument("--asset", required=True, type=Path, help="rigged asset (.glb/.gltf/.fbx/.blend)")
+    rd.add_argument("--out", required=True, type=Path, help="output folder of the training shard")
+    rd.add_argument("--preset", default="tiny", help="run preset whose render settings to use (tiny, demo, paper)")
+    rd.add_argument("--texture", action="append", help="texture image (repeatable; default: the toy's coats)")
+    rd.add_argument("--envmap", action="append", help="HDR/EXR environment map (repeatable; default: a sky)")
+    rd.add_argument("--shard", type=int, default=0, help="shard index of the output (part-NNNNN)")
+    rd.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    rd.set_defaults(func=_cmd_render)
+
+    col = sub.add_parser("collection", help="synthesise image collections")
+    col_sub = col.add_subparsers(dest="collection_command", required=True)
+    ct = col_sub.add_parser("toy", help="render the toy in natural poses into images/ + masks/ (+ hidden truth)")
+    ct.add_argument("--n", type=int, required=True, help="number of images")
+    ct.add_argument("--out", type=Path, required=True, help="collection folder (truth goes to <out>_ground_truth)")
+    ct.add_argument("--seed", type=int, default=0)
+    ct.add_argument("--resolution", type=int, default=128, help="image side in pixels")
+    ct.add_argument("--preset", default="demo", help="run preset whose render settings to use")
+    ct.add_argument("--force", action="store_true", help="re-render even if a matching collection exists")
+    ct.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    ct.set_defaults(func=_cmd_collection_toy)
 
     tr = sub.add_parser("train", help="train a dual point map predictor on rendered training shards")
     tr.add_argument("--shards", required=True, type=Path, help="folder of training shards (part-NNNNN.parquet/.npz)")
