@@ -139,8 +139,9 @@ def test_default_prior_is_the_reference_table_and_loads_from_a_mapping():
         "elevation": {"loc": 2.0, "scale": 8.0}, "roll": {"loc": 0.0, "scale": 6.0}, "fov_deg": 35.0,
     }, "categories.toy.camera_prior")
     assert loaded.elevation == AnglePrior(loc=2.0, scale=8.0) and loaded.per_view_type is None
-    # config_utils reports Optional fields as a whole (not the nested key): the path still names the field
-    with pytest.raises(ConfigError, match=r"categories.toy.camera_prior.per_view_type: expected"):
+    # the error inside an Optional section names the nested key
+    with pytest.raises(ConfigError, match=r"categories\.toy\.camera_prior\.per_view_type\.left\.roll: unknown key\(s\) "
+                                          r"\['sigma'\]"):
         from_mapping(CameraPriorConfig, {"per_view_type": {"left": {"elevation": {"loc": 0.0, "scale": 1.0, "df": 2.0},
                                                                     "roll": {"loc": 0.0, "sigma": 1.0}}}},
                      "categories.toy.camera_prior")
