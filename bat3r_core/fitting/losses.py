@@ -77,50 +77,45 @@ def _vertex_major(vertices: torch.Tensor) -> torch.Tensor:
     return vertices.permute(1, 0, 2).reshape(vertices.shape[1], -1)
 
 
-def _selection(rows: np.ndarray, cols: np.ndarray, values: np.ndarray, shape: tuple[int, int], dtype, device
-               ) -> torch.Tensor:
-    """A sparse (COO) matrix; sparse @ dense keeps the gathers of the regularisers cheap in both passes."""
-    idx = torch.as_tensor(np.stack([rows, cols]).astype(np.int64), device=device)
-    return torch.sparse_coo_tensor(idx, torch.as_tensor(values, dtype=dtype, device=device), shape,
-                                   check_invariants=False).coalesce()
-
-
-def edge_term(vertices: torch.Tensor, incidence: torch.Tensor, rest_sq_lengths: torch.Tensor) -> torch.Tensor:
+def edge_term(vertices: torch.Tensor, edges: torch.Tensor, rest_sq_lengths: torch.Tensor) -> torch.Tensor:
     """(B,) mean over edges of ``(|e|² − |e_rest|²)²``.
 
     Args:
-        vertices: (B, V, 3) metres. incidence: (E, V) sparse, +1/−1 at each edge's two vertices.
-        rest_sq_lengths: (E,) m².
+        vertices: (B, V, 3) metres. edges: (E, 2) int vertex indices. rest_sq_lengths: (E,) m².
     """
     b = vertices.shape[0]
-    e = torch.sparse.mm(incidence, _vertex_major(vertices)).reshape(-1, b, 3)  # (E, B, 3) edge vectors
+    x = _vertex_major(vertices)  # row gathers of (V, B*3) are contiguous in both passes
+    e = (x.index_select(0, edges[:, 0]) - x.index_select(0, edges[:, 1])).reshape(-1, b, 3)  # (E, B, 3)
     return (((e * e).sum(-1) - rest_sq_lengths[:, None]) ** 2).mean(0)
 
 
-def _bone_volumes(vertices: torch.Tensor, corners: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-                  centroid: torch.Tensor, face_bone: torch.Tensor, num_bones: int) -> torch.Tensor:
+def _bone_volumes(vertices: torch.Tensor, faces: torch.Tensor, face_bone_onehot: torch.Tensor,
+                  centroid_weights: torch.Tensor) -> torch.Tensor:
     """(B, K) signed volume of each bone's faces about the centroid of their corners.
 
-    corners: three (F, V) sparse selections of each face's corner k; centroid: (K, V) sparse averaging matrix.
+    Args:
+        vertices: (B, V, 3). faces: (F, 3).
+        face_bone_onehot: (F, K) dense one-hot bone of each face (dense products beat scatter-adds on CPU).
+        centroid_weights: (K, V) dense, row k averages the corners of bone k's faces.
     """
     b = vertices.shape[0]
     x = _vertex_major(vertices)  # (V, B*3)
-    c = torch.sparse.mm(centroid, x)[face_bone]  # (F, B*3) centroid of each face's bone
-    rel = [(torch.sparse.mm(s, x) - c).reshape(-1, b, 3) for s in corners]  # 3 x (F, B, 3)
-    tet = (rel[0] * torch.cross(rel[1], rel[2], dim=-1)).sum(-1) / 6.0  # (F, B)
-    vol = torch.zeros(num_bones, b, dtype=vertices.dtype, device=vertices.device)
-    return vol.index_add_(0, face_bone, tet).T
+    c = face_bone_onehot @ (centroid_weights @ x)  # (F, B*3) centroid of each face's bone
+    r0, r1, r2 = ((x.index_select(0, faces[:, k]) - c).reshape(-1, b, 3) for k in range(3))
+    tet = (r0 * torch.cross(r1, r2, dim=-1)).sum(-1) / 6.0  # (F, B)
+    return (face_bone_onehot.T @ tet).T
 
 
-def volume_term(vertices: torch.Tensor, corners, centroid: torch.Tensor, face_bone: torch.Tensor,
-                rest_volumes: torch.Tensor, volume_scale: torch.Tensor) -> torch.Tensor:
+def volume_term(vertices: torch.Tensor, faces: torch.Tensor, face_bone_onehot: torch.Tensor,
+                centroid_weights: torch.Tensor, rest_volumes: torch.Tensor, volume_scale: torch.Tensor
+                ) -> torch.Tensor:
     """(B,) local-volume term (see the module docstring).
 
     Args:
-        vertices: (B, V, 3) metres. corners, centroid: sparse selections (see :class:`MeshRegularisers`).
-        face_bone: (F,) compacted bone of each face. rest_volumes, volume_scale: (K,) m³.
+        vertices: (B, V, 3) metres. faces: (F, 3). face_bone_onehot: (F, K). centroid_weights: (K, V).
+        rest_volumes, volume_scale: (K,) m³.
     """
-    vol = _bone_volumes(vertices, corners, centroid, face_bone, rest_volumes.shape[0])
+    vol = _bone_volumes(vertices, faces, face_bone_onehot, centroid_weights)
     return (((vol - rest_volumes) / volume_scale) ** 2).mean(-1)
 
 
@@ -167,7 +162,9 @@ def repulsion_term(vertices: torch.Tensor, pair_batch: torch.Tensor, pairs: torc
     out = torch.zeros(batch_size, dtype=vertices.dtype, device=vertices.device)
     if pairs.numel() == 0:
         return out
-    d = vertices[pair_batch, pairs[:, 0]] - vertices[pair_batch, pairs[:, 1]]
+    b, v = vertices.shape[:2]
+    x = _vertex_major(vertices).reshape(v * b, 3)  # row v * B + b holds vertex v of instance b
+    d = x.index_select(0, pairs[:, 0] * b + pair_batch) - x.index_select(0, pairs[:, 1] * b + pair_batch)
     pen = torch.relu(radius * radius - (d * d).sum(-1)) ** 2
     return out.index_add(0, pair_batch, pen)
 
@@ -177,18 +174,17 @@ class MeshRegularisers:
     """Per-asset constants of the edge and volume terms (build with :meth:`from_mesh`).
 
     Attributes:
-        edges: (E, 2) int64 unique mesh edges. incidence: (E, V) sparse +1/−1. rest_sq_lengths: (E,) m².
-        corners: three (F, V) sparse corner selections. centroid: (K, V) sparse averaging over a bone's corners.
-        face_bone: (F,) int64 compacted bone index of each face (dominant summed skin weight of its corners).
+        edges: (E, 2) int64 unique mesh edges. rest_sq_lengths: (E,) m².
+        faces: (F, 3) int64. face_bone_onehot: (F, K) one-hot compacted bone of each face (the joint with the
+            largest summed skin weight over its corners). centroid_weights: (K, V) averaging over each bone's corners.
         bone_of: (K,) int64 rig joint of each compacted bone. rest_volumes: (K,) m³. volume_scale: (K,) m³.
     """
 
     edges: torch.Tensor
-    incidence: torch.Tensor
     rest_sq_lengths: torch.Tensor
-    corners: tuple[torch.Tensor, torch.Tensor, torch.Tensor]
-    centroid: torch.Tensor
-    face_bone: torch.Tensor
+    faces: torch.Tensor
+    face_bone_onehot: torch.Tensor
+    centroid_weights: torch.Tensor
     bone_of: torch.Tensor
     rest_volumes: torch.Tensor
     volume_scale: torch.Tensor
@@ -197,38 +193,36 @@ class MeshRegularisers:
     def from_mesh(rest_vertices: np.ndarray, faces: np.ndarray, skin_weights: np.ndarray,
                   dtype: torch.dtype = torch.float32, device: str | torch.device = "cpu") -> "MeshRegularisers":
         """Constants from the rest mesh: ``rest_vertices`` (V, 3) m, ``faces`` (F, 3), ``skin_weights`` (V, J)."""
-        v = np.asarray(rest_vertices, dtype=np.float64)
+        v = np.array(rest_vertices, dtype=np.float64)
         f = np.array(faces, dtype=np.int64)
         w = np.asarray(skin_weights, dtype=np.float64)
-        nv, nf = len(v), len(f)
         e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
         rest_sq = ((v[e[:, 0]] - v[e[:, 1]]) ** 2).sum(1)
-        ne = len(e)
-        incidence = _selection(np.repeat(np.arange(ne), 2), e.reshape(-1), np.tile([1.0, -1.0], ne), (ne, nv),
-                               dtype, device)
-        corners = tuple(_selection(np.arange(nf), f[:, k], np.ones(nf), (nf, nv), dtype, device) for k in range(3))
         dominant = w[f].sum(1).argmax(1)  # (F,) joint with the largest summed weight over the face's corners
         bone_of, face_bone = np.unique(dominant, return_inverse=True)
         nb = len(bone_of)
-        per_bone = np.bincount(face_bone, minlength=nb) * 3.0
-        centroid = _selection(np.repeat(face_bone, 3), f.reshape(-1), np.repeat(1.0 / per_bone[face_bone], 3),
-                              (nb, nv), dtype, device)
-        fb = torch.as_tensor(face_bone.astype(np.int64), device=device)
-        rest_vol = _bone_volumes(torch.as_tensor(v.copy(), dtype=dtype, device=device)[None], corners, centroid, fb, nb)[0]
+        to = dict(dtype=dtype, device=device)
+        ft = torch.as_tensor(f, device=device)
+        onehot = np.zeros((len(f), nb))
+        onehot[np.arange(len(f)), face_bone] = 1.0
+        cw = np.zeros((nb, len(v)))
+        np.add.at(cw, (np.repeat(face_bone, 3), f.reshape(-1)), 1.0)
+        cw /= cw.sum(1, keepdims=True)
+        fb, cw = torch.as_tensor(onehot, **to), torch.as_tensor(cw, **to)
+        rest_vol = _bone_volumes(torch.as_tensor(v, **to)[None], ft, fb, cw)[0]
         scale = torch.clamp(rest_vol.abs(), min=0.1 * float(rest_vol.abs().mean()))
-        return MeshRegularisers(edges=torch.as_tensor(e, device=device), incidence=incidence,
-                                rest_sq_lengths=torch.as_tensor(rest_sq, dtype=dtype, device=device),
-                                corners=corners, centroid=centroid, face_bone=fb,
+        return MeshRegularisers(edges=torch.as_tensor(e, device=device), rest_sq_lengths=torch.as_tensor(rest_sq, **to),
+                                faces=ft, face_bone_onehot=fb, centroid_weights=cw,
                                 bone_of=torch.as_tensor(bone_of, device=device), rest_volumes=rest_vol,
                                 volume_scale=scale)
 
     def edge(self, vertices: torch.Tensor) -> torch.Tensor:
         """(B,) :func:`edge_term` of (B, V, 3) vertices."""
-        return edge_term(vertices, self.incidence, self.rest_sq_lengths)
+        return edge_term(vertices, self.edges, self.rest_sq_lengths)
 
     def volume(self, vertices: torch.Tensor) -> torch.Tensor:
         """(B,) :func:`volume_term` of (B, V, 3) vertices."""
-        return volume_term(vertices, self.corners, self.centroid, self.face_bone, self.rest_volumes,
+        return volume_term(vertices, self.faces, self.face_bone_onehot, self.centroid_weights, self.rest_volumes,
                            self.volume_scale)
 
 

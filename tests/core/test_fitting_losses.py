@@ -91,7 +91,7 @@ def test_repulsion_zero_at_rest_and_grows_when_a_limb_goes_through_the_body(coar
         t = torch.as_tensor(pairs)
         return repulsion_term(verts, torch.zeros(len(pairs), dtype=torch.long), t, 0.05, 1).item()
 
-    assert repulsion(torch.as_tensor(rig.rest_vertices)[None]) == 0.0
+    assert repulsion(torch.as_tensor(rig.rest_vertices.copy())[None]) == 0.0
     # swing the left hind leg sideways under the belly into the right hind leg: the penalty grows from first
     # contact (0.32 rad) until the legs' surfaces cross (0.38 rad); deeper crossings leave fewer surface pairs
     # within r, a limitation of surface-pair repulsion that the paper's formulation shares
