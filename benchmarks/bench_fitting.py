@@ -8,6 +8,7 @@ Writes benchmarks/results/fitting.json via benchmarks/_results.py.
 """
 from __future__ import annotations
 
+import os
 import sys
 import tempfile
 import time
@@ -53,7 +54,10 @@ def make_instances(rig, n: int, seed: int) -> list[PointCloudInstance]:
 
 
 def main() -> dict:
-    torch.set_num_threads(2)
+    # one intra-op thread: on the shared 2-core machine two OpenMP threads spin against each other and against
+    # other processes (erratic, often slower); run one fitting process per core instead
+    threads = int(os.environ.get("BAT3R_BENCH_THREADS", "1"))
+    torch.set_num_threads(threads)
     rig = build_toy_rig()
     config = preset("synthetic")
     with tempfile.TemporaryDirectory() as cache:
@@ -80,7 +84,8 @@ def main() -> dict:
     figures["batched_speedup_b64"] = round(figures["instances_per_s_b64"] / single, 1)
     notes = (f"toy rig {rig.num_vertices} vertices / {rig.num_joints} joints, synthetic preset ({config.steps} steps, "
              f"{config.num_control_points} control points, regularisers on a {len(asset.reg_mesh.rest_vertices)}-"
-             f"vertex proxy, repulsion pairs refreshed every {config.repulsion_refresh_steps} steps), torch threads 2. "
+             f"vertex proxy, repulsion pairs refreshed every {config.repulsion_refresh_steps} steps), torch threads "
+             f"{threads}. "
              f"One-at-a-time rate measured on {ONE_AT_A_TIME} instances and compared per instance; "
              "times include correspondences, FPS, camera recovery and output Chamfer.")
     record("fitting", figures, notes)

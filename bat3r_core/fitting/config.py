@@ -77,7 +77,7 @@ class FittingConfig:
     repulsion_reference_length: float = HORSE_LENGTH_M
     repulsion_k: int = 100
     repulsion_radius: float = 0.05
-    repulsion_refresh_steps: int = 10
+    repulsion_refresh_steps: int = 20
     bone_scale_bounds: tuple[float, float] = (0.5, 2.0)
     enable_bone_scales: bool = False
     fit_root_rotation: bool = True
