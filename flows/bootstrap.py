@@ -86,7 +86,7 @@ def _progress(settings: RunSettings, iteration: int, stage: str) -> str:
 def canonical_initialisation(category: str, preset: str, run_name: str, overrides: dict[str, Any],
                              ablations: dict[str, bool], seed: int, max_failed_fraction: float) -> dict[str, Any]:
     """Iteration 0: sample render jobs around the rest-pose mesh, render them, extract features, train Φ_0.
-    Returns ``{"stages": {stage: [records]}, "predictor": path}``."""
+    Returns ``{"stages": {stage: [records]}, "states": {stage: [state names]}, "predictor": path, "metrics": rows}``."""
     settings = resolve_run(category, preset, run_name, overrides, ablations, max_failed_fraction=max_failed_fraction)
     layout, cfg, mff = settings.layout, _stage_configs(settings, seed), settings.max_failed_fraction
 
@@ -121,7 +121,7 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
                                 notes=["Per-sample evaluation of the test split is not available yet."])
     return {"stages": {r.stage: list(r.records) for r in stages},
             "states": {r.stage: list(r.states) for r in stages},
-            "predictor": train.records[0]["predictor"]}
+            "predictor": train.records[0]["predictor"], "metrics": metrics["rows"]}
 
 
 def _bootstrap_run_name() -> str:
@@ -180,8 +180,7 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
     init = canonical_initialisation.with_options(task_runner=runner)(
         category, preset, run_name, overrides, dataclasses.asdict(settings.ablations), seed,
         settings.max_failed_fraction)
-    metrics = evaluate(category, run_name, storage_root=str(layout.storage_root))
-    return {"run_dir": str(layout.root), "iterations": [init], "metrics": metrics["rows"]}
+    return {"run_dir": str(layout.root), "iterations": [init], "metrics": init["metrics"]}
 
 
 def _parse(argv: list[str] | None = None):

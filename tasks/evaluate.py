@@ -29,7 +29,8 @@ def _metrics_file(run_dir: str) -> Path:
             output=lambda p: _metrics_file(p["run_dir"]))
 def update_metrics(run_dir: str, config: dict | None = None) -> dict:
     """Recompute ``run_dir/metrics.parquet`` from every ``iter-NN/evaluate`` shard
-    (``bat3r_core.evaluation.evaluate_run``). Returns ``stage, files, content_hash, rows`` (the metrics rows, NaN as None)."""
+    (``bat3r_core.evaluation.evaluate_run``). Returns ``stage, files, content_hash, rows`` (the metrics rows,
+    NaN as None)."""
     path = evaluation.evaluate_run(run_dir)
     rows = [{k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()}
             for r in evaluation.read_metrics(run_dir).to_pylist()]

@@ -116,6 +116,14 @@ def test_inference_task_with_the_trained_predictor(first_run, catalog):
     assert infer_flow().states == ("Cached",)
 
 
+def _persisted_render_shards(layout: RunLayout) -> set[int]:
+    """Render shards whose task has finished: its JSON result record (naming the shard) is in the result storage."""
+    if not layout.results_dir.is_dir():
+        return set()
+    text = b"".join(p.read_bytes() for p in layout.results_dir.glob("render-*"))
+    return {i for i in (0, 1) if f"iter-00/render/part-{i:05d}.parquet".encode() in text}
+
+
 def test_killed_run_resumes_from_its_completed_shards(first_run, catalog, prefect_harness):
     from prefect.settings import PREFECT_API_URL
 
@@ -125,27 +133,28 @@ def test_killed_run_resumes_from_its_completed_shards(first_run, catalog, prefec
            *CLI_TINY]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
-    first_shard = layout.stage_dir(0, "render") / "part-00000.parquet"
     try:
         deadline = time.monotonic() + 240
-        while not first_shard.is_file() and proc.poll() is None and time.monotonic() < deadline:
+        while 0 not in _persisted_render_shards(layout) and proc.poll() is None and time.monotonic() < deadline:
             time.sleep(0.2)
-        assert first_shard.is_file(), "the first render shard never appeared"
+        assert 0 in _persisted_render_shards(layout), "render shard 0 never completed"
     finally:
         os.killpg(proc.pid, signal.SIGKILL)  # the flow and its Blender workers, mid-iteration
         proc.wait()
     assert not (layout.stage_dir(0, "train") / "predictor.pt").exists()
-    done = set(shards.list_shards(layout.stage_dir(0, "render")))
-    kept = _hashes(layout.stage_dir(0, "render"))
+    completed = _persisted_render_shards(layout)  # task finished: shard written and its record persisted
+    kept = {p.name: (p.stat().st_mtime_ns, shards.content_hash([p]))
+            for i in completed for p in layout.stage_dir(0, "render").glob(f"part-{i:05d}.*")}
 
     from flows.bootstrap import bootstrap
 
     resumed = bootstrap(category="toy", preset="tiny", iterations=0, run_name="k1", overrides=TINY)
     states = resumed["iterations"][0]["states"]
     assert states["plan"] == ["Cached"]
-    assert [s == "Cached" for s in states["render"]] == [i in done for i in (0, 1)]
-    after = _hashes(layout.stage_dir(0, "render"))
-    assert all(after[name] == h for name, h in kept.items())  # completed shards reused, not rewritten
+    assert [s == "Cached" for s in states["render"]] == [i in completed for i in (0, 1)]
+    for name, (mtime, digest) in kept.items():  # completed shards reused, not rewritten
+        p = layout.stage_dir(0, "render") / name
+        assert (p.stat().st_mtime_ns, shards.content_hash([p])) == (mtime, digest)
     # the resumed run's training data equals the uninterrupted run's (same settings, different run folder)
     reference = RunLayout(catalog / "runs", "toy", "t1")
     for i in (0, 1):
@@ -229,7 +238,8 @@ with get_client(sync_client=True) as c:
     keys = {a.key for a in c.read_artifacts()}
     needed = {f"toy-t1-iter-00-{s}" for s in ("plan", "render", "features", "train", "summary")}
     assert needed <= keys, sorted(keys)
-    (summary,) = c.read_artifacts(artifact_filter=ArtifactFilter(key=ArtifactFilterKey(any_=["toy-t1-iter-00-summary"])))
+    key = ArtifactFilter(key=ArtifactFilterKey(any_=["toy-t1-iter-00-summary"]))
+    (summary,) = c.read_artifacts(artifact_filter=key)
     print(run.id)
     print(summary.data)
 """
