@@ -29,7 +29,8 @@ from .camera import CameraEstimate, recover_camera
 from .config import FittingConfig
 from .correspondences import VertexIndex
 from .geodesics import load_or_compute_geodesics
-from .losses import MeshRegularisers, RegulariserMesh, regulariser_mesh, angle_term, data_term, find_repulsion_pairs, repulsion_term, scale_term
+from .losses import (MeshRegularisers, RegulariserMesh, angle_term, data_term, find_repulsion_pairs,
+                     regulariser_mesh, repulsion_term, scale_term)
 from .sampling import farthest_point_sampling
 
 __all__ = ["FittingAsset", "PointCloudInstance", "FitResult", "fit_batch", "LOSS_NAMES", "STATUS_TOO_FEW",
@@ -272,7 +273,7 @@ def fit_batch(asset: FittingAsset, instances: list[PointCloudInstance], config: 
         raise TypeError(f"config must be a FittingConfig, got {type(config).__name__}")
     if not isinstance(instances, (list, tuple)) or not all(isinstance(i, PointCloudInstance) for i in instances):
         raise TypeError("instances must be a list of PointCloudInstance")
-    rig, tensors = asset.rig, asset.tensors
+    rig = asset.rig
     num_j, num_v = rig.num_joints, rig.num_vertices
     statuses, reasons, infos, prepared = [], [], [], []
     for k, inst in enumerate(instances):

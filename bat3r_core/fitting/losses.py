@@ -54,7 +54,11 @@ def data_term(posed: torch.Tensor, targets: torch.Tensor, mask: torch.Tensor, de
 
 
 def angle_term(excess_rotations: torch.Tensor, joint_mask: torch.Tensor | None = None) -> torch.Tensor:
-    """(B,) mean over (masked) joints of ``‖θ_j‖²``; ``excess_rotations`` (B, J, 3) radians, ``joint_mask`` (J,)."""
+    """(B,) mean over (masked) joints of ``‖θ_j‖²``.
+
+    Args:
+        excess_rotations: (B, J, 3) radians. joint_mask: (J,) 1 for optimised joints, or None for all.
+    """
     sq = (excess_rotations ** 2).sum(-1)  # (B, J)
     if joint_mask is None:
         return sq.mean(-1)

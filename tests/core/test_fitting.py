@@ -140,15 +140,10 @@ def _errors(rig, result, truth):
 
 
 def _root_translation(rig, result, i, t):
-    """The true camera translation for the fitted root pose (the posed mesh seen from the true camera is fixed)."""
+    """The true camera translation in the fitted world: the fitted world keeps the root joint's rest origin ``o``
+    fixed (the root rotates about it), so the camera must map ``o`` where the true camera maps it."""
     cam = t["camera"]
-    root0 = rig.rest_transforms[0, :3, :3]
     o = rig.rest_transforms[0, :3, 3]
-    r_fit = root0 @ axis_angle_to_matrix(torch.as_tensor(result.excess_rotations[i][0])).numpy() @ root0.T
-    r_cam = result.cameras[i].rotation @ r_fit  # world rotation of the fitted root frame in the camera
-    # true root frame in the camera: R_true_root, origin R o + t; the fitted world maps the root origin o to
-    # R_c (o) + t_c, so matching origins gives t_c = (R o + t) - R_c o
-    del r_cam
     return cam.R @ o + cam.t - result.cameras[i].rotation @ o
 
 
@@ -336,6 +331,16 @@ def test_too_few_points_are_recorded_not_fitted(toy, toy_fit):
     assert np.isnan(res.excess_rotations[[0, 2, 3]]).all() and np.isfinite(res.excess_rotations[1]).all()
     assert res.cameras[0] is None and res.cameras[1] is not None
     assert res.inlier_ratio[2] == 0.0
+
+
+def test_fit_batch_rejects_bad_arguments(toy_fit):
+    asset, _, _ = toy_fit
+    with pytest.raises(TypeError, match="config must be a FittingConfig, got dict"):
+        fit_batch(asset, [], {"steps": 3})
+    with pytest.raises(TypeError, match="instances must be a list of PointCloudInstance"):
+        fit_batch(asset, [np.zeros((3, 3))], preset("synthetic"))
+    with pytest.raises(TypeError, match="rig must be a bat3r_core.rig.Rig"):
+        FittingAsset.prepare("toy", preset("synthetic"))
 
 
 def test_config_validation_and_presets():
