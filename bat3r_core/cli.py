@@ -149,6 +149,26 @@ def _cmd_collection_toy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit(args: argparse.Namespace) -> int:
+    from .fitting.config import preset
+    from .fitting.io import fit_points_file
+    from .shards import read_table
+
+    config = preset(args.preset, catalog=args.catalog)
+    if args.steps is not None:
+        import dataclasses
+
+        config = dataclasses.replace(config, steps=args.steps)
+    summary = fit_points_file(args.asset, args.points, config, args.out, device=args.device,
+                              fit_focal=args.fit_focal)
+    print(f"fitted {summary['num_ok']}/{summary['num_instances']} instances ({args.preset} preset, "
+          f"{config.steps} steps) into {args.out}")
+    for row in read_table(args.out).select(["sample_id", "status", "reason"]).to_pylist():
+        if row["status"] != "ok":
+            print(f"  {row['sample_id']}: {row['status']}: {row['reason']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bat3r", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -204,6 +224,17 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--out", required=True, type=Path, help="output folder (predictions/ and clouds)")
     pr.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
     pr.set_defaults(func=_cmd_predict)
+
+    ft = sub.add_parser("fit", help="fit the rigged mesh to predicted dual point clouds")
+    ft.add_argument("--asset", required=True, help="rigged asset (.glb/.gltf/.fbx/.blend) or 'toy'")
+    ft.add_argument("--points", required=True, type=Path, help="points npz (format in the README)")
+    ft.add_argument("--preset", required=True, choices=["synthetic", "real"], help="fitting preset")
+    ft.add_argument("--out", required=True, type=Path, help="output folder of fit shards")
+    ft.add_argument("--steps", type=int, default=None, help="override the preset's optimisation steps")
+    ft.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:N)")
+    ft.add_argument("--fit-focal", action="store_true", help="also search the focal length in camera recovery")
+    ft.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    ft.set_defaults(func=_cmd_fit)
 
     ev = sub.add_parser("evaluate", help="recompute metrics.parquet and report.html of a run from its stored rows")
     ev.add_argument("--run", required=True, type=Path, help="run folder (<storage>/<category>/<run name>)")

@@ -5,12 +5,14 @@ below hold the values of the paper's supplement and of REFERENCE.md.
 """
 from __future__ import annotations
 
+import os
+
 from dataclasses import dataclass
 from typing import Any, Mapping
 
 from bat3r_core.config_utils import ConfigError, from_mapping
 
-__all__ = ["FittingConfig", "PRESETS", "preset", "HORSE_LENGTH_M"]
+__all__ = ["FittingConfig", "preset", "HORSE_LENGTH_M"]
 
 HORSE_LENGTH_M = 2.7
 """Length (longest rest-pose bounding-box side, metres) of the horse the reference thresholds were set for."""
@@ -119,24 +121,20 @@ class FittingConfig:
         return self.repulsion_geodesic_threshold * float(asset_length) / self.repulsion_reference_length
 
 
-PRESETS: dict[str, dict[str, Any]] = {
-    "synthetic": {
-        "steps": 200, "weight_angle": 1e-5, "weight_edge": 100.0, "weight_volume": 20.0, "weight_repulsion": 1.0,
-        "weight_scale": 0.0, "enable_bone_scales": False,
-    },
-    "real": {
-        "steps": 300, "weight_angle": 3e-5, "weight_edge": 3000.0, "weight_volume": 20.0, "weight_repulsion": 5.0,
-        "weight_scale": 0.01, "enable_bone_scales": True,
-    },
-}
-"""The paper's presets (supplement, 'Mesh fitting and regularization'); every other field keeps its default."""
+def preset(name: str, overrides: Mapping[str, Any] | None = None,
+           catalog: str | os.PathLike | None = None) -> FittingConfig:
+    """The :class:`FittingConfig` of preset ``name`` (``synthetic`` or ``real``) as the data catalog's
+    ``fitting_presets`` define it (the paper's values in the shipped catalog), with optional ``overrides``
+    (a mapping of field names, e.g. ``{"inlier_distance": 0.05}``), validated strictly.
 
+    Args:
+        catalog: data catalog file (default: :func:`bat3r_core.catalog.default_catalog_path`).
+    """
+    from bat3r_core.catalog import load_catalog
 
-def preset(name: str, overrides: Mapping[str, Any] | None = None) -> FittingConfig:
-    """The :class:`FittingConfig` of preset ``name`` (``synthetic`` or ``real``) with optional ``overrides``
-    (a mapping of field names, e.g. ``{"inlier_distance": 0.05}``), validated strictly."""
-    if name not in PRESETS:
-        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
-    data = dict(PRESETS[name])
+    presets = load_catalog(catalog, validate_stages=False).fitting_presets
+    if name not in presets:
+        raise ValueError(f"preset must be one of {sorted(presets)}, got {name!r}")
+    data = dict(presets[name])
     data.update(overrides or {})
     return from_mapping(FittingConfig, data, f"fitting.{name}")

@@ -26,6 +26,7 @@ from bat3r_core.cameras import PinholeCamera
 from bat3r_core.metrics import to_cm
 from bat3r_core.shards import ShardPaths, write_shard
 
+from .config import FittingConfig
 from .fit import LOSS_NAMES, FitResult, PointCloudInstance
 
 __all__ = ["write_points_npz", "read_points_npz", "fit_rows", "write_fit_shard", "camera_from_row", "FIT_COLUMNS",
@@ -174,7 +175,7 @@ def load_asset_rig(asset: str | os.PathLike):
     return load_rig(asset)
 
 
-def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike, preset: str,
+def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike, preset: str | FittingConfig,
                     out_dir: str | os.PathLike, *, shard_size: int = 256, device: str = "cpu",
                     overrides: dict | None = None, cache_dir: str | os.PathLike | None = None,
                     fit_focal: bool = False) -> dict:
@@ -183,8 +184,8 @@ def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike
     Args:
         asset_path: rigged mesh file, or ``"toy"``.
         points_npz: predicted points (format in the module docstring).
-        preset: ``"synthetic"`` or ``"real"`` (:data:`bat3r_core.fitting.config.PRESETS`); ``overrides`` change
-            single fields (e.g. ``{"inlier_distance": 0.05}``).
+        preset: ``"synthetic"`` or ``"real"`` (the data catalog's ``fitting_presets``), or a ready
+            :class:`~.config.FittingConfig`; ``overrides`` change single fields (e.g. ``{"inlier_distance": 0.05}``).
         out_dir: stage folder; shards ``part-00000`` … of ``shard_size`` instances each (fitted as one batch).
         device: torch device of the optimisation (``"cpu"`` or ``"cuda"``).
         cache_dir: geodesics cache folder (default: :func:`~.geodesics.default_cache_dir`).
@@ -192,12 +193,19 @@ def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike
     Returns:
         ``{"shards": [parquet paths], "num_instances": n, "num_ok": k}``.
     """
+    from bat3r_core.config_utils import replace_path
+
     from .config import preset as make_preset
     from .fit import FittingAsset, fit_batch
 
     if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:
         raise ValueError(f"shard_size must be an int >= 1, got {shard_size!r}")
-    config = make_preset(preset, overrides)
+    if isinstance(preset, FittingConfig):
+        config = preset
+        for key, value in (overrides or {}).items():
+            config = replace_path(config, key, value)
+    else:
+        config = make_preset(preset, overrides)
     instances = read_points_npz(points_npz)
     rig = load_asset_rig(asset_path)
     asset = FittingAsset.prepare(rig, config, cache_dir=cache_dir, device=device)

@@ -27,7 +27,7 @@ from bat3r_core.fitting.geodesics import geodesic_distances, load_or_compute_geo
 from bat3r_core.fitting.io import FIT_COLUMNS, fit_points_file, read_points_npz, write_points_npz
 from bat3r_core.fitting.sampling import farthest_point_sampling, surface_distance
 
-torch.set_num_threads(1)  # steadier and faster than 2 OpenMP threads on the shared 2-core machine
+pytestmark = pytest.mark.usefixtures("torch_single_thread")  # steadier on 2 shared cores
 IMAGE = 96
 
 

@@ -13,7 +13,7 @@ from bat3r_core.fitting.geodesics import geodesic_distances
 from bat3r_core.fitting.losses import (MeshRegularisers, angle_term, data_term, find_repulsion_pairs, huber,
                                        regulariser_mesh, repulsion_term, scale_term)
 
-torch.set_num_threads(1)  # steadier and faster than 2 OpenMP threads on the shared 2-core machine
+pytestmark = pytest.mark.usefixtures("torch_single_thread")  # steadier on 2 shared cores
 
 
 @pytest.fixture(scope="module")
