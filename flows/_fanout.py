@@ -90,26 +90,26 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
     for fut in as_completed(futures):
         i = position[id(fut)]
         label = _label(calls[i], i)
-        fut.wait()
-        state = fut.state
+        current = fut
+        current.wait()
         try:
-            record = fut.result()
-            if state.name == "Cached":
+            record = current.result()
+            if current.state.name == "Cached":
                 if record_is_intact(record):
                     cached += 1
                 else:
                     logger.warning("%s %s: cached result's files changed or vanished; recomputing", stage, label)
-                    refreshed = stage_task.with_options(refresh_cache=True).submit(**calls[i])
-                    record = refreshed.result()
-                    state = refreshed.state
+                    current = stage_task.with_options(refresh_cache=True).submit(**calls[i])
+                    current.wait()
+                    record = current.result()
                     recomputed += 1
             records[i] = record
         except Exception as exc:  # the task failed after its retries: report the shard, apply the policy
-            attempts = _attempts(fut)
+            attempts = _attempts(current)
             tries = f"after {attempts} attempt(s)" if attempts is not None else "after its retries"
             failures.append(ShardFailure(label, f"{type(exc).__name__}: {exc} ({tries})"))
             logger.error("%s %s failed (%s): %s", stage, label, tries, exc)
-        states[i] = state.name
+        states[i] = current.state.name
         done += 1
         update_progress_artifact(progress_id, 100.0 * done / max(len(calls), 1),
                                  description=f"{stage}: {done} of {len(calls)} shards ({len(failures)} failed)")
