@@ -40,7 +40,7 @@ __all__ = ["ITERATION_STAGES", "RUN_STAGES", "RunLayout", "code_version", "stage
            "read_manifest", "shard_record", "ShardFailure", "FailureSummary", "TooManyFailedShards",
            "apply_failure_policy", "prune_shards"]
 
-ITERATION_STAGES = ("infer", "fit", "plan", "render", "features", "train", "evaluate")
+ITERATION_STAGES = ("infer", "fit", "plan", "render", "features", "train", "test_infer", "evaluate")
 """Stage folders inside ``iter-NN/``, in data-flow order."""
 RUN_STAGES = ("collection", "test")
 """Run-level stage folders (not tied to an iteration)."""

@@ -29,9 +29,13 @@ def _stage_line(r: StageResult) -> str:
              + (f", {r.recomputed} recomputed after their files changed" if r.recomputed else "") + ")"]
     if any("n_rows" in rec for rec in r.records):
         parts.append(f"{ok_samples} samples ok, {bad_samples} skipped")
+    planned = [rec for rec in r.records if "n_jobs" in rec]
+    if planned:
+        n_jobs = sum(int(rec["n_jobs"]) for rec in planned)
+        n_files = sum(int(rec.get("n_shards", len(rec.get("files", [])))) for rec in planned)
+        fits = sum(int(rec.get("n_fits", 0)) for rec in planned)
+        parts.append(f"{n_jobs} render jobs in {n_files} shard(s)" + (f" from {fits} fit rows" if fits else ""))
     for rec in r.records:
-        if "n_jobs" in rec:
-            parts.append(f"{rec['n_jobs']} render jobs in {rec['n_shards']} shard(s)")
         if "steps" in rec:
             loss = rec.get("final_loss")
             parts.append(f"{rec['steps']} steps on {rec.get('n_samples', '?')} samples, final loss {_fmt(loss)}")

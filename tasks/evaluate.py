@@ -9,7 +9,7 @@ from prefect import task
 from bat3r_core import evaluation, report, shards
 from tasks._cache import shard_input_files, stage_task
 
-__all__ = ["update_metrics", "build_report", "evaluation_inputs"]
+__all__ = ["update_metrics", "build_report", "evaluation_inputs", "evaluate_shard"]
 
 
 def evaluation_inputs(run_dir: str) -> list[Path]:
@@ -42,3 +42,28 @@ def build_report(run_dir: str) -> str:
     """Rebuild ``run_dir/report.html`` (``bat3r_core.report.build_report``; never cached: it is cheap and reads the
     whole run). Returns its path."""
     return str(report.build_report(run_dir))
+
+
+def _shard_inputs(p: dict) -> list[Path]:
+    from bat3r_core.predictor.infer import clouds_path
+
+    return [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"])] + \
+        shard_input_files(p["predictions_dir"], p["index"]) + [clouds_path(p["predictions_dir"], p["index"])]
+
+
+@stage_task("evaluate", "bat3r_core.evaluation", inputs=_shard_inputs,
+            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
+            task_run_name="evaluate-{index}")
+def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: dict) -> dict:
+    """Per-sample evaluation rows of the test predictions in shard ``index`` of ``predictions_dir``
+    (``bat3r_core.evaluation.evaluate_prediction_shard``) → shard ``index`` of ``out_dir``.
+    config: ``{"asset", "ground_truth" (ground_truth.npz), "body_frame", "split", "iteration", "seed"}``.
+    Returns the shard record."""
+    from bat3r_core.rig_io import load_rig
+    from bat3r_core.runs import shard_record
+
+    gt = evaluation.load_ground_truth(config["ground_truth"])
+    paths = evaluation.evaluate_prediction_shard(
+        predictions_dir, index, gt, load_rig(config["asset"]), dict(config["body_frame"]), str(config["split"]),
+        int(config["iteration"]), out_dir, seed=int(config.get("seed", 0)))
+    return shard_record("evaluate", index, paths)

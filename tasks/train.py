@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from bat3r_core import shards
+from bat3r_core.shards import atomic_write_text
 from bat3r_core.config_utils import from_mapping
 from bat3r_core.predictor import train as training
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
@@ -22,6 +23,18 @@ def training_inputs(shards_dir: str) -> list[Path]:
     return [f for i in shards.list_shards(shards_dir) for f in shard_input_files(shards_dir, i)]
 
 
+def _discard_stale_checkpoint(out_dir: Path, inputs_hash: str) -> None:
+    """Keep ``checkpoint.pt`` only when it was written for the same training shards (a killed task resumes);
+    training data that changed since (e.g. an earlier stage recomputed) starts a fresh model."""
+    stamp = out_dir / "inputs.json"
+    previous = json.loads(stamp.read_text()).get("inputs_hash") if stamp.is_file() else None
+    if previous != inputs_hash:
+        for name in ("checkpoint.pt", "predictor.pt", "train_log.jsonl"):
+            (out_dir / name).unlink(missing_ok=True)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(stamp, json.dumps({"inputs_hash": inputs_hash}))
+
+
 @stage_task("train", "bat3r_core.predictor.train", inputs=lambda p: training_inputs(p["shards_dir"]),
             output=lambda p: Path(p["out_dir"]), retries=1, gpu=True)
 def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dict:
@@ -33,6 +46,7 @@ def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dic
     ``train_predictor`` has no device argument. Returns ``stage, predictor, files, content_hash, steps,
     final_loss`` (the last logged total loss).
     """
+    _discard_stale_checkpoint(Path(out_dir), shards.content_hash(training_inputs(shards_dir)))
     model_cfg = from_mapping(ModelConfig, config["model"], "model")
     train_cfg = from_mapping(TrainConfig, config["train"], "train")
     feature_cfg = from_mapping(FeatureConfig, config["features"], "features")

@@ -52,6 +52,7 @@ class AugmentConfig:
         num_textures: texture ids are drawn uniformly from ``[0, num_textures)``.
         num_envmaps: environment maps drawn from ``[0, num_envmaps)``; 0 → ``-1`` (procedural sky).
         include_estimated: also emit the job of the estimated (fitted) camera itself (view_kind ``estimated``).
+        augment: add the 1–2 augmented views (False: the "no viewpoint augmentation" ablation).
     """
 
     p_two_lateral: float = 0.65
@@ -64,6 +65,7 @@ class AugmentConfig:
     num_textures: int = 1
     num_envmaps: int = 0
     include_estimated: bool = True
+    augment: bool = True
 
     def __post_init__(self) -> None:
         for name in ("p_two_lateral", "p_two_frontal"):
@@ -159,7 +161,8 @@ def plan_views(source_id: str, excess_rotations: np.ndarray, world_vertices: np.
     jobs = []
     if config.include_estimated:
         jobs.append(job(f"{source_id}-est", "estimated", base, camera))
-    for k, vtype in enumerate(sample_extra_view_types(base, config, rng)):
+    extra = sample_extra_view_types(base, config, rng) if config.augment else []
+    for k, vtype in enumerate(extra):
         vp = _new_view(world_vertices, frame, vtype, config, width, height, rng)
         jobs.append(job(f"{source_id}-aug{k}", "augmented", vp.view_type, vp.camera))
     return jobs

@@ -27,7 +27,7 @@ from bat3r_core.metrics import to_cm
 from bat3r_core.shards import ShardPaths, write_shard
 
 from .config import FittingConfig
-from .fit import LOSS_NAMES, FitResult, PointCloudInstance
+from .fit import LOSS_NAMES, FitResult, FittingAsset, PointCloudInstance
 
 __all__ = ["write_points_npz", "read_points_npz", "fit_rows", "write_fit_shard", "camera_from_row", "FIT_COLUMNS",
            "load_asset_rig", "fit_points_file"]
@@ -196,7 +196,7 @@ def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike
     from bat3r_core.config_utils import replace_path
 
     from .config import preset as make_preset
-    from .fit import FittingAsset, fit_batch
+    from .fit import fit_batch
 
     if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:
         raise ValueError(f"shard_size must be an int >= 1, got {shard_size!r}")
@@ -215,3 +215,62 @@ def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike
         ok += sum(s == "ok" for s in result.status)
         shards.append(str(write_fit_shard(out_dir, index, result).parquet))
     return {"shards": shards, "num_instances": len(instances), "num_ok": ok}
+
+
+def instances_from_predictions(predictions_dir: str | os.PathLike, index: int, camera: PinholeCamera
+                               ) -> tuple[list[PointCloudInstance], list[dict]]:
+    """Point-cloud instances of inference shard ``index`` (``bat3r_core.predictor.infer`` output).
+
+    Every row of the shard becomes an instance (rows whose prediction failed get no points, so fitting records
+    them as unfitted). The confidence of a point is the smaller of its canonical and posed confidences.
+
+    Args:
+        camera: the nominal camera of the model's crops (intrinsics and image size; e.g.
+            ``PinholeCamera.from_fov(prior.fov_deg, R, R)``, the field of view the training renders used).
+    Returns:
+        (instances, prediction rows) in shard row order.
+    """
+    from bat3r_core.predictor.infer import clouds_path, load_clouds
+    from bat3r_core.shards import read_shard
+
+    table, arrays = read_shard(predictions_dir, index, with_arrays=False)
+    rows = table.to_pylist()
+    clouds = load_clouds(clouds_path(predictions_dir, index))
+    if len(clouds) != len(rows):
+        raise ValueError(f"{predictions_dir}: shard {index} has {len(rows)} rows but its clouds hold {len(clouds)} "
+                         "instances")
+    if not isinstance(camera, PinholeCamera):
+        raise TypeError(f"camera must be a PinholeCamera, got {type(camera).__name__}")
+    k, size = np.asarray(camera.K, dtype=np.float64), (camera.width, camera.height)
+    out = []
+    for i, row in enumerate(rows):
+        c = clouds.instance(i)
+        ok = row["status"] == "ok"
+        n = len(c["posed_points"]) if ok else 0
+        conf = np.minimum(c["canonical_confidence"], c["posed_confidence"])[:n].astype(np.float64)
+        out.append(PointCloudInstance(
+            sample_id=row["sample_id"], posed_points=c["posed_points"][:n].astype(np.float64),
+            canonical_points=c["canonical_points"][:n].astype(np.float64), confidence=conf,
+            pixels=c["pixels"][:n].astype(np.float64), layers=c["layers"][:n].astype(np.int64), intrinsics=k,
+            image_size=size))
+    return out, rows
+
+
+def fit_prediction_shard(asset: FittingAsset, predictions_dir: str | os.PathLike, index: int,
+                         out_dir: str | os.PathLike, config: FittingConfig, camera: PinholeCamera,
+                         fit_focal: bool = False) -> ShardPaths:
+    """Fit the rig to every instance of inference shard ``index`` and write fit shard ``index`` of ``out_dir``.
+
+    Rows whose prediction failed keep their prediction status and reason (prefixed ``prediction:``), so a bad
+    image stays traceable through the stages.
+    """
+    from .fit import fit_batch
+
+    instances, pred_rows = instances_from_predictions(predictions_dir, index, camera)
+    result = fit_batch(asset, instances, config, fit_focal=fit_focal)
+    rows = fit_rows(result)
+    for row, pred in zip(rows, pred_rows):
+        if pred["status"] != "ok":
+            row["status"], row["reason"] = pred["status"], f"prediction: {pred['reason']}"
+    return write_shard(out_dir, index, rows,
+                       arrays={"posed_vertices": np.asarray(result.posed_vertices, dtype=np.float32)})
