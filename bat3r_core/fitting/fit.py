@@ -305,6 +305,10 @@ def fit_batch(asset: FittingAsset, instances: list[PointCloudInstance], config: 
                      cameras=cameras, **out)
 
 
+_MIN_FRONT_POINTS = 8
+"""Below this many layer-0 inliers, camera recovery uses the inliers of every layer."""
+
+
 def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np.ndarray, rotation: np.ndarray,
                config: FittingConfig, fit_focal: bool) -> CameraEstimate | None:
     """Camera of one fitted instance from its layer-0 pixels (None without pixels or intrinsics)."""
@@ -314,6 +318,9 @@ def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np
     corr = asset.vertex_index.match(inst.canonical_points, inst.confidence, config.inlier_distance,
                                     config.min_confidence)
     front = (layers == 0) & corr.inlier
+    if front.sum() < _MIN_FRONT_POINTS:
+        # every layer's point lies on its pixel's ray too: use them when the visible layer has too few inliers
+        front = corr.inlier
     if front.sum() < 2:
         return None
     rotated = world_vertices[corr.vertex[front]] @ rotation.T  # (n, 3) fitted points, camera orientation

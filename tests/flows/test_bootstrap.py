@@ -1,5 +1,6 @@
-"""The bootstrap flow (canonical initialisation) end to end: real Blender, ray casting and training at tiny sizes;
-the rerun hits the cache for every task; a SIGKILLed run resumes and reuses its completed shards."""
+"""The bootstrap flow end to end (canonical initialisation + 2 refinement iterations): real Blender, ray casting,
+training and fitting at tiny sizes; the rerun hits the cache for every task; a SIGKILLed run resumes, reuses its
+completed shards and produces the same metrics."""
 from __future__ import annotations
 
 import os
@@ -11,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from prefect import flow
 
@@ -44,7 +46,7 @@ def first_run(prefect_harness, catalog):
     from flows.bootstrap import bootstrap
 
     t0 = time.perf_counter()
-    result = bootstrap(category="toy", preset="tiny", iterations=0, run_name="t1", overrides=TINY)
+    result = bootstrap(category="toy", preset="tiny", iterations=2, run_name="t1", overrides=TINY)
     return result, time.perf_counter() - t0
 
 
@@ -77,16 +79,43 @@ def test_canonical_initialisation_writes_the_run_folder(first_run, catalog):
     assert shards.list_shards(layout.run_stage_dir("test")) == [0]
 
 
+def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog):
+    result, _ = first_run
+    layout = RunLayout(catalog / "runs", "toy", "t1")
+    assert len(result["iterations"]) == 3
+    for i in (1, 2):
+        it = result["iterations"][i]
+        assert set(it["states"]) == {"infer", "fit", "plan", "render", "features", "train", "test_infer", "evaluate"}
+        fits = shards.read_table(layout.stage_dir(i, "fit")).to_pylist()
+        assert len(fits) == 4 and sum(r["status"] == "ok" for r in fits) >= 1
+        jobs = shards.read_table(layout.stage_dir(i, "render")).to_pylist()
+        ok_fits = {r["sample_id"] for r in fits if r["status"] == "ok"}
+        # every fitted image is rendered from its estimated view plus 1-2 augmented views
+        assert {j["source_id"] for j in jobs} <= ok_fits
+        assert {j["view_kind"] for j in jobs} <= {"estimated", "augmented"}
+        assert sum(j["view_kind"] == "estimated" for j in jobs) == len(ok_fits)
+        assert Path(it["predictor"]).is_file() and it["predictor"] != result["iterations"][i - 1]["predictor"]
+    rows = shards.read_table(layout.stage_dir(2, "evaluate")).to_pylist()
+    assert len(rows) == 4 and all(r["iteration"] == 2 and r["split"] == "test" for r in rows)
+    metrics = pq.read_table(layout.metrics).to_pylist()
+    assert sorted(r["iteration"] for r in metrics) == [0, 1, 2]
+    assert all(r["n"] + r["n_failed"] == 4 and r["mcd_cm"] > 0 for r in metrics)
+
+
 def test_rerun_hits_the_cache_for_every_task(first_run, catalog):
     from flows.bootstrap import bootstrap
 
     layout = RunLayout(catalog / "runs", "toy", "t1")
     before = {s: _hashes(layout.stage_dir(0, s)) for s in ("plan", "render", "features")}
     predictor = shards.content_hash([layout.stage_dir(0, "train") / "predictor.pt"])
-    again = bootstrap(category="toy", preset="tiny", iterations=0, run_name="t1", overrides=TINY)
+    metrics = shards.content_hash([layout.metrics])
+    again = bootstrap(category="toy", preset="tiny", iterations=2, run_name="t1", overrides=TINY)
     states = again["iterations"][0]["states"]
     assert states == {"plan": ["Cached"], "render": ["Cached", "Cached"], "features": ["Cached", "Cached"],
-                      "train": ["Cached"]}
+                      "train": ["Cached"], "test_infer": ["Cached"], "evaluate": ["Cached"]}
+    for it in again["iterations"][1:]:
+        assert all(s == "Cached" for stage in it["states"].values() for s in stage), it["states"]
+    assert shards.content_hash([layout.metrics]) == metrics
     assert {s: _hashes(layout.stage_dir(0, s)) for s in before} == before
     assert shards.content_hash([layout.stage_dir(0, "train") / "predictor.pt"]) == predictor
 
@@ -163,14 +192,17 @@ def test_killed_run_resumes_from_its_completed_shards(first_run, catalog, prefec
         np.testing.assert_array_equal(a["P"], b["P"])
         np.testing.assert_array_equal(a["occupancy"], b["occupancy"])
     assert Path(resumed["iterations"][0]["predictor"]).is_file()
+    # and the same metrics as the uninterrupted run (its iteration-0 row)
+    resumed_rows = pq.read_table(layout.metrics).to_pylist()
+    reference_rows = [r for r in pq.read_table(reference.metrics).to_pylist() if r["iteration"] == 0]
+    assert resumed_rows == reference_rows
 
 
-def test_iterations_beyond_the_initialisation_name_what_is_missing(prefect_harness, catalog):
+def test_baselines_that_do_not_iterate_say_so(prefect_harness, catalog):
     from flows.bootstrap import bootstrap
 
-    with pytest.raises(ValueError, match="iterations=2: bootstrap iterations after the canonical initialisation "
-                                         "need bat3r_core functions that do not exist yet"):
-        bootstrap(category="toy", preset="tiny", run_name="t2", overrides=TINY)
+    with pytest.raises(ValueError, match="random_poses is a baseline trained once on random poses"):
+        bootstrap(category="toy", preset="tiny", run_name="t2", overrides=TINY, random_poses=True)
 
 
 def _free_port() -> int:
