@@ -49,10 +49,17 @@ test: install browser-deps
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 demo: install
-	$(PY) -m bat3r_core.cli asset toy --out runs/toy/toy.glb
+	$(PY) flows/demo.py
 
 bench: install
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# A local Prefect server (127.0.0.1), the process work pool, the deployments of deploy/prefect.yaml and a worker.
+server: install
+	PY=$(abspath $(PY)) bash deploy/server.sh
+
+server-stop:
+	PY=$(abspath $(PY)) bash deploy/server-stop.sh
 
 clean:
 	rm -rf runs .pytest_cache

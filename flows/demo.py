@@ -1,0 +1,60 @@
+"""``make demo``: the bootstrap on the embedded ``toy`` category with the ``demo`` preset, on this machine.
+
+Runs the ``bootstrap`` flow locally (canonical initialisation + the preset's iterations), prints the metrics table,
+and records the figures the method is judged by — wall-clock minutes, the canonical model's mCD and the last
+iteration's mCD on the toy test split — in ``benchmarks/results/demo.json`` and ``benchmarks/RESULTS.md``.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if __package__ in (None, ""):
+    sys.path.insert(0, str(ROOT))
+
+from flows._artifacts import METRIC_COLUMNS  # noqa: E402
+from flows.bootstrap import bootstrap  # noqa: E402
+
+
+def _fmt(v) -> str:
+    return "–" if v is None else (f"{v:.2f}" if isinstance(v, float) else str(v))
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="demo")
+    p.add_argument("--run-name", default="demo")
+    p.add_argument("--no-record", action="store_true", help="do not write benchmarks/results/demo.json")
+    args = p.parse_args(argv)
+    t0 = time.perf_counter()
+    result = bootstrap(category="toy", preset=args.preset, run_name=args.run_name)
+    minutes = (time.perf_counter() - t0) / 60.0
+    rows = sorted((r for r in result["metrics"] if r["split"] == "test"), key=lambda r: r["iteration"])
+    print(f"\nrun folder: {result['run_dir']}  (report: {result['run_dir']}/report.html)")
+    print("  ".join(f"{c:>16}" for c in METRIC_COLUMNS))
+    for r in rows:
+        print("  ".join(f"{_fmt(r.get(c)):>16}" for c in METRIC_COLUMNS))
+    if not rows:
+        print("no test metrics (the test split has no ground truth)")
+        return 1
+    first, last = rows[0]["mcd_cm"], rows[-1]["mcd_cm"]
+    ratio = last / first if first else float("nan")
+    print(f"\n{minutes:.1f} min; mCD canonical {first:.2f} cm -> iteration {rows[-1]['iteration']} {last:.2f} cm "
+          f"(ratio {ratio:.2f}; the method's claim at this scale: <= 0.75)")
+    if not args.no_record and args.preset == "demo":
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        from _results import record
+
+        record("demo", {"minutes": round(minutes, 2), "mcd_canonical_cm": round(first, 3),
+                        "mcd_last_cm": round(last, 3), "mcd_ratio": round(ratio, 3),
+                        "iterations": int(rows[-1]["iteration"])},
+               notes="make demo: bootstrap on the toy category, demo preset, CPU; mCD on the toy test split")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
