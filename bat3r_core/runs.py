@@ -25,7 +25,6 @@ import math
 import os
 import re
 import subprocess
-import tempfile
 import time
 import types
 from dataclasses import dataclass
@@ -221,19 +220,6 @@ def stage_code_version(stage_module: str | types.ModuleType) -> str:
 
 # -------------------------------------------------------------------------------------------------- manifest
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def read_manifest(layout: RunLayout) -> dict[str, Any]:
     """The run's ``manifest.json`` as a dict (``{}`` when it does not exist yet)."""
     if not layout.manifest.is_file():
@@ -267,7 +253,7 @@ def write_manifest(layout: RunLayout, config: Mapping[str, Any], stage_modules: 
         "created": previous.get("created", now),
         "updated": now,
     }
-    _atomic_write_text(layout.manifest, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    shards.atomic_write_text(layout.manifest, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     return manifest
 
 

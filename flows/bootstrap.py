@@ -50,6 +50,7 @@ from tasks.features import extract_features_shard
 from tasks.fit import fit_shard
 from tasks.plan import plan_sampled_jobs, plan_views_shard
 from tasks.predict import infer_shard
+from tasks.raw_images import raw_image_shard
 from tasks.render import render_shard
 from tasks.train import train_model
 
@@ -60,6 +61,7 @@ STAGE_MODULES = {
     "plan": "bat3r_core.datasets", "render": "bat3r_core.render.runner",
     "features": "bat3r_core.predictor.features", "train": "bat3r_core.predictor.train",
     "infer": "bat3r_core.predictor.infer", "fit": "bat3r_core.fitting.fit", "plan_views": "bat3r_core.fitting.augment",
+    "raw_images": "bat3r_core.datasets",
     "evaluate": "bat3r_core.evaluation", "report": "bat3r_core.report",
 }
 """The bat3r_core module each stage runs; their code versions go into ``manifest.json`` and the cache keys."""
@@ -192,6 +194,14 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                       "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "fit")), "config": cfg["fit"]}
                      for r in infer.records],
                     progress_key=_progress(settings, iteration, "fit"), max_failed_fraction=mff)
+    if settings.ablations.raw_images:  # the raw-image baseline: train on the photos with fitted pseudo-labels
+        render = run_stage("render", for_run(raw_image_shard, layout),
+                           [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
+                             "collection_dir": str(collection_dir), "index": r["index"],
+                             "out_dir": str(layout.stage_dir(iteration, "render")),
+                             "config": {"layers": settings.layers}} for r in fit.records],
+                           progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
+        return _train_and_evaluate(settings, category, run_name, iteration, cfg, [infer, fit], render)
     plan = run_stage("plan", for_run(plan_views_shard, layout),
                      [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
                        "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "plan")),
@@ -208,6 +218,13 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                        [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(iteration, "render")),
                          "config": cfg["render"]} for i, f in job_files],
                        progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
+    return _train_and_evaluate(settings, category, run_name, iteration, cfg, [infer, fit, plan], render)
+
+
+def _train_and_evaluate(settings: RunSettings, category: str, run_name: str, iteration: int, cfg: dict[str, Any],
+                        earlier: list[StageResult], render: StageResult) -> dict[str, Any]:
+    """features → train Φ_iteration on the iteration's training shards → evaluate it on the test split."""
+    layout, mff = settings.layout, settings.max_failed_fraction
     features = run_stage("features", for_run(extract_features_shard, layout),
                          [{"input_dir": str(layout.stage_dir(iteration, "render")), "index": r["index"],
                            "out_dir": str(layout.stage_dir(iteration, "features")), "config": cfg["features"]}
@@ -218,7 +235,7 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                         "out_dir": str(layout.stage_dir(iteration, "train")), "config": cfg["train"]}],
                       progress_key=_progress(settings, iteration, "train"), max_failed_fraction=0.0)
     new_predictor = train.records[0]["predictor"]
-    stages = [infer, fit, plan, render, features, train, *_evaluate_test(settings, cfg, iteration, new_predictor)]
+    stages = [*earlier, render, features, train, *_evaluate_test(settings, cfg, iteration, new_predictor)]
     return _finish_iteration(settings, category, run_name, iteration, stages, new_predictor)
 
 
@@ -263,8 +280,6 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
         raise ValueError(f"iterations must be >= 0, got {n_iter}")
     if random_poses and n_iter > 0:
         raise ValueError("random_poses is a baseline trained once on random poses: run it with iterations=0")
-    if raw_images:
-        raise ValueError("raw_images (the raw-image baseline) is not implemented yet; see the README's status")
     layout = settings.layout.create()
     write_manifest(layout, {**settings.to_mapping(), "parameters": {
         "iterations": n_iter, "task_runner": task_runner, "seed": seed, "overrides": overrides}}, STAGE_MODULES)

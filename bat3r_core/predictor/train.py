@@ -24,7 +24,6 @@ import json
 import math
 import os
 import random
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -39,6 +38,7 @@ from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.data import FeatureFn, ShardDataset
 from bat3r_core.predictor.loss import dual_pointmap_loss, huber_delta
 from bat3r_core.predictor.network import DualPointMapNet
+from bat3r_core.shards import atomic_write
 
 CHECKPOINT_NAME = "checkpoint.pt"
 PREDICTOR_NAME = "predictor.pt"
@@ -68,19 +68,8 @@ def _dist_env() -> tuple[int, int, int]:
             int(os.environ.get("LOCAL_RANK", "0")))
 
 
-def _atomic_torch_save(obj: Any, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(obj, tmp)
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+def _torch_save_atomic(obj: Any, path: Path) -> None:
+    atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
 def _rng_state() -> dict[str, Any]:
@@ -225,7 +214,7 @@ class Trainer:
                 self.save_checkpoint()
         if self.step >= cfg.steps:
             if self.rank == 0:
-                _atomic_torch_save(self._predictor_state(), self.out_dir / PREDICTOR_NAME)
+                _torch_save_atomic(self._predictor_state(), self.out_dir / PREDICTOR_NAME)
             self._barrier()
             return self.out_dir / PREDICTOR_NAME
         return self.out_dir / CHECKPOINT_NAME
@@ -252,7 +241,7 @@ class Trainer:
             state.update({"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
                           "scaler": self.scaler.state_dict(), "epoch": self.epoch, "position": self.position,
                           "world_size": self.world_size, "n_samples": len(self.dataset), "rng": _rng_state()})
-            _atomic_torch_save(state, path)
+            _torch_save_atomic(state, path)
         self._barrier()
         return path
 

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 import pyarrow as pa
@@ -129,44 +128,7 @@ def test_camera_histograms_match_a_counting_loop():
     np.testing.assert_array_equal(sum(p.az_el for p in per.values()), h.az_el)
 
 
-def _angle_fitter_stand_in():
-    """A stand-in ``bat3r_core.viewpoints`` (same ``fit_angle_distribution`` signature) for checkouts where the
-    real module has not landed; returns None when the real one imports."""
-    import importlib
-    import types
-
-    try:
-        if callable(getattr(importlib.import_module("bat3r_core.viewpoints"), "fit_angle_distribution", None)):
-            return None
-    except ImportError:
-        pass
-    from dataclasses import dataclass
-
-    from scipy import stats
-
-    @dataclass(frozen=True)
-    class AngleFit:
-        student_t: tuple
-        normal: tuple
-        loglik_t: float
-        loglik_normal: float
-
-    def fit_angle_distribution(samples_deg):
-        x = np.asarray(samples_deg, dtype=float)
-        df, loc, scale = stats.t.fit(x)
-        mu, sigma = stats.norm.fit(x)
-        return AngleFit((df, loc, scale), (mu, sigma), float(stats.t.logpdf(x, df, loc, scale).sum()),
-                        float(stats.norm.logpdf(x, mu, sigma).sum()))
-
-    mod = types.ModuleType("bat3r_core.viewpoints")
-    mod.AngleFit, mod.fit_angle_distribution = AngleFit, fit_angle_distribution
-    return mod
-
-
-def test_angle_fits_prefer_student_t_for_heavy_tails(monkeypatch):
-    stand_in = _angle_fitter_stand_in()
-    if stand_in is not None:
-        monkeypatch.setitem(sys.modules, "bat3r_core.viewpoints", stand_in)
+def test_angle_fits_prefer_student_t_for_heavy_tails():
     rng = np.random.default_rng(11)
     el = 2.0 + 5.0 * rng.standard_t(1.8, 3000)
     ro = 4.0 * rng.standard_t(1.5, 3000)

@@ -6,7 +6,6 @@ import json
 import math
 import re
 import subprocess
-import sys
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -133,48 +132,10 @@ def _make_run(root: Path, iterations: int = 3, n: int = 120) -> Path:
     return run
 
 
-def _angle_fitter_stand_in():
-    """A stand-in ``bat3r_core.viewpoints`` (same ``fit_angle_distribution`` signature) for checkouts where the
-    real module has not landed; returns None when the real one imports."""
-    import importlib
-    import types
-
-    try:
-        if callable(getattr(importlib.import_module("bat3r_core.viewpoints"), "fit_angle_distribution", None)):
-            return None
-    except ImportError:
-        pass
-    from dataclasses import dataclass
-
-    from scipy import stats
-
-    @dataclass(frozen=True)
-    class AngleFit:
-        student_t: tuple
-        normal: tuple
-        loglik_t: float
-        loglik_normal: float
-
-    def fit_angle_distribution(samples_deg):
-        x = np.asarray(samples_deg, dtype=float)
-        df, loc, scale = stats.t.fit(x)
-        mu, sigma = stats.norm.fit(x)
-        return AngleFit((df, loc, scale), (mu, sigma), float(stats.t.logpdf(x, df, loc, scale).sum()),
-                        float(stats.norm.logpdf(x, mu, sigma).sum()))
-
-    mod = types.ModuleType("bat3r_core.viewpoints")
-    mod.AngleFit, mod.fit_angle_distribution = AngleFit, fit_angle_distribution
-    return mod
-
-
 @pytest.fixture(scope="module")
 def full_run(tmp_path_factory) -> Path:
     run = _make_run(tmp_path_factory.mktemp("runs"))
-    with pytest.MonkeyPatch.context() as mp:
-        stand_in = _angle_fitter_stand_in()
-        if stand_in is not None:
-            mp.setitem(sys.modules, "bat3r_core.viewpoints", stand_in)
-        R.build_report(run)
+    R.build_report(run)
     return run
 
 

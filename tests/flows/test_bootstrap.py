@@ -198,6 +198,23 @@ def test_killed_run_resumes_from_its_completed_shards(first_run, catalog, prefec
     assert resumed_rows == reference_rows
 
 
+def test_raw_image_baseline_trains_on_the_photos_with_fitted_labels(first_run, catalog):
+    from flows.bootstrap import bootstrap
+
+    result = bootstrap(category="toy", preset="tiny", iterations=1, run_name="raw", overrides=TINY, raw_images=True)
+    layout = RunLayout(catalog / "runs", "toy", "raw")
+    it = result["iterations"][1]
+    assert "plan" not in it["states"] and set(it["states"]) >= {"infer", "fit", "render", "train", "evaluate"}
+    table, arrays = shards.read_shard(layout.stage_dir(1, "render"), 0)
+    collection, photos = shards.read_shard(layout.run_stage_dir("collection"), 0)
+    # the training images are the collection's own crops, labelled by ray casting the fitted meshes
+    np.testing.assert_array_equal(arrays["rgb"], photos["rgb"])
+    assert table.column("sample_id").to_pylist() == collection.column("sample_id").to_pylist()
+    ok = shards.ok_mask(table)
+    assert ok.any() and set(table.column("view_kind").to_pylist()) == {"raw_image"}
+    assert arrays["occupancy"][ok].any(axis=(1, 2, 3)).all()
+
+
 def test_baselines_that_do_not_iterate_say_so(prefect_harness, catalog):
     from flows.bootstrap import bootstrap
 

@@ -1,0 +1,25 @@
+"""Raw-image baseline stage: the collection's crops with pseudo-labels ray-cast from their fits (no rendering)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+from bat3r_core import datasets, shards
+from bat3r_core.rig_io import load_rig
+from bat3r_core.runs import shard_record
+from tasks._cache import shard_input_files, stage_task
+
+__all__ = ["raw_image_shard"]
+
+
+@stage_task("raw_images", "bat3r_core.datasets",
+            inputs=lambda p: [Path(p["asset"])] + shard_input_files(p["fit_dir"], p["index"])
+            + shard_input_files(p["collection_dir"], p["index"]),
+            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
+            task_run_name="raw-images-{index}")
+def raw_image_shard(asset: str, fit_dir: str, collection_dir: str, index: int, out_dir: str,
+                    config: Mapping[str, Any]) -> dict:
+    """Training shard ``index`` of ``out_dir`` from collection shard ``index`` and fit shard ``index``
+    (``bat3r_core.datasets.raw_image_shard``). config: ``{"layers": K}``. Returns the shard record."""
+    paths = datasets.raw_image_shard(load_rig(asset), fit_dir, collection_dir, index, out_dir, int(config["layers"]))
+    return shard_record("raw_images", index, paths)
