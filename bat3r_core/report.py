@@ -243,6 +243,9 @@ def _load(run_dir: Path) -> _RunData:
     for it, d in evaluation.iteration_dirs(run_dir):
         t = _guarded(f"iteration {it} fit rows", lambda: shards.read_table(d / FIT_STAGE), None, errors)
         if t is not None and t.num_rows:
+            errs = d / evaluation.EVALUATE_STAGE / evaluation.PSEUDO_LABEL_FILE
+            if errs.is_file():  # pose errors against the hidden ground truth (evaluation stage)
+                t = _guarded(f"iteration {it} pseudo-label errors", lambda: join_pose_errors(t, errs), t, errors)
             fits[it] = t
         q = d / evaluation.EVALUATE_STAGE / QUALITATIVE_FILE
         if q.is_file():
@@ -488,6 +491,20 @@ def _section_angle_fits(d: _RunData) -> str:
             for name in ("elevation", "roll")]
     return _png(fig, "angle fits") + _table(["angle", "t df", "t loc", "t scale", "normal loc", "normal σ",
                                              "log-lik t", "log-lik normal"], rows, "num")
+
+
+def join_pose_errors(fits: pa.Table, path: Path) -> pa.Table:
+    """Fit rows with the ``joint_err_cm, vertex_err_cm, angle_err_deg`` of ``pseudo_labels.parquet`` (NaN where a fit
+    has none)."""
+    import pyarrow.parquet as pq
+
+    errs = {r["sample_id"]: r for r in pq.read_table(path).to_pylist()}
+    ids = fits.column("sample_id").to_pylist()
+    for col in ("joint_err_cm", "vertex_err_cm", "angle_err_deg"):
+        values = pa.array([errs.get(i, {}).get(col, math.nan) for i in ids], pa.float64())
+        fits = fits.set_column(fits.column_names.index(col), col, values) if col in fits.column_names \
+            else fits.append_column(col, values)
+    return fits
 
 
 def _section_pseudo_labels(d: _RunData) -> str:

@@ -45,7 +45,7 @@ from flows._settings import Ablations, RunSettings, resolve_run
 from flows.evaluate import evaluate
 from flows.toy_collection import prepare_split
 from tasks._cache import for_run
-from tasks.evaluate import evaluate_shard
+from tasks.evaluate import evaluate_shard, pseudo_label_quality
 from tasks.features import extract_features_shard
 from tasks.fit import fit_shard
 from tasks.plan import plan_sampled_jobs, plan_views_shard
@@ -194,6 +194,16 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                       "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "fit")), "config": cfg["fit"]}
                      for r in infer.records],
                     progress_key=_progress(settings, iteration, "fit"), max_failed_fraction=mff)
+    earlier = [infer, fit]
+    collection_gt = settings.collection.get("ground_truth")
+    if collection_gt and (Path(collection_gt) / "ground_truth.npz").is_file():  # pseudo-label quality (toy)
+        earlier.append(run_stage("pseudo_labels", for_run(pseudo_label_quality, layout),
+                                 [{"fit_dir": str(layout.stage_dir(iteration, "fit")),
+                                   "out_dir": str(layout.stage_dir(iteration, "evaluate")),
+                                   "config": {"asset": settings.assets.asset,
+                                              "ground_truth": str(Path(collection_gt) / "ground_truth.npz")}}],
+                                 progress_key=_progress(settings, iteration, "pseudo_labels"),
+                                 max_failed_fraction=1.0))
     if settings.ablations.raw_images:  # the raw-image baseline: train on the photos with fitted pseudo-labels
         render = run_stage("render", for_run(raw_image_shard, layout),
                            [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
@@ -201,7 +211,7 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                              "out_dir": str(layout.stage_dir(iteration, "render")),
                              "config": {"layers": settings.layers}} for r in fit.records],
                            progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
-        return _train_and_evaluate(settings, category, run_name, iteration, cfg, [infer, fit], render)
+        return _train_and_evaluate(settings, category, run_name, iteration, cfg, earlier, render)
     plan = run_stage("plan", for_run(plan_views_shard, layout),
                      [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
                        "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "plan")),
@@ -218,7 +228,7 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                        [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(iteration, "render")),
                          "config": cfg["render"]} for i, f in job_files],
                        progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
-    return _train_and_evaluate(settings, category, run_name, iteration, cfg, [infer, fit, plan], render)
+    return _train_and_evaluate(settings, category, run_name, iteration, cfg, [*earlier, plan], render)
 
 
 def _train_and_evaluate(settings: RunSettings, category: str, run_name: str, iteration: int, cfg: dict[str, Any],

@@ -9,7 +9,7 @@ from prefect import task
 from bat3r_core import evaluation, report, shards
 from tasks._cache import shard_input_files, stage_task
 
-__all__ = ["update_metrics", "build_report", "evaluation_inputs", "evaluate_shard"]
+__all__ = ["update_metrics", "build_report", "evaluation_inputs", "evaluate_shard", "pseudo_label_quality"]
 
 
 def evaluation_inputs(run_dir: str) -> list[Path]:
@@ -67,3 +67,25 @@ def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: dict)
         predictions_dir, index, gt, load_rig(config["asset"]), dict(config["body_frame"]), str(config["split"]),
         int(config["iteration"]), out_dir, seed=int(config.get("seed", 0)))
     return shard_record("evaluate", index, paths)
+
+
+@stage_task("pseudo_labels", "bat3r_core.evaluation",
+            inputs=lambda p: [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"])]
+            + [f for i in shards.list_shards(p["fit_dir"]) for f in shard_input_files(p["fit_dir"], i)],
+            output=lambda p: Path(p["out_dir"]) / evaluation.PSEUDO_LABEL_FILE, retries=1)
+def pseudo_label_quality(fit_dir: str, out_dir: str, config: dict) -> dict:
+    """Fitted-pose vs hidden ground-truth pose errors of an iteration's collection fits
+    (``bat3r_core.evaluation.write_pseudo_label_errors``) → ``out_dir/pseudo_labels.parquet``.
+    config: ``{"asset", "ground_truth" (the collection's ground_truth.npz)}``. Returns ``stage, files,
+    content_hash, n`` and the mean errors."""
+    import pyarrow.parquet as pq
+
+    from bat3r_core.rig_io import load_rig
+
+    path = evaluation.write_pseudo_label_errors(fit_dir, evaluation.load_ground_truth(config["ground_truth"]),
+                                                load_rig(config["asset"]), out_dir)
+    rows = pq.read_table(path).to_pylist()
+    mean = {k: (sum(r[k] for r in rows) / len(rows) if rows else None)
+            for k in ("joint_err_cm", "vertex_err_cm", "angle_err_deg")}
+    return {"stage": "pseudo_labels", "files": [str(path)], "content_hash": shards.content_hash([path]),
+            "n": len(rows), **mean}

@@ -114,3 +114,20 @@ def test_evaluate_run_on_an_empty_run(tmp_path):
     assert pq.read_table(path).num_rows == 0
     with pytest.raises(FileNotFoundError, match="does not exist"):
         E.evaluate_run(tmp_path / "missing")
+
+
+def test_pseudo_label_errors_zero_for_the_true_pose_and_blind_to_global_placement(toy_rig):
+    from bat3r_core.poses import sample_toy_natural_poses
+
+    theta, _ = sample_toy_natural_poses(3, seed=404)
+    gt = {f"s{i}": {"excess_rotations": theta[i]} for i in range(3)}
+    fitted = theta.copy()
+    fitted[:, 0] += [0.4, -1.0, 0.2]  # another root rotation = another global orientation: not a pose error
+    fitted[2, toy_rig.joint_index("forearm.L")] += [0.6, 0.0, 0.0]  # a real pose error on sample 2
+    rows = [{"sample_id": f"s{i}", "status": "ok", "excess_rotations": fitted[i].ravel().tolist()} for i in range(3)]
+    rows.append({"sample_id": "s9", "status": "too_few_points", "excess_rotations": []})
+    out = {r["sample_id"]: r for r in E.pseudo_label_errors(rows, gt, toy_rig)}
+    assert set(out) == {"s0", "s1", "s2"}
+    for s in ("s0", "s1"):
+        assert out[s]["vertex_err_cm"] < 1e-6 and out[s]["joint_err_cm"] < 1e-6 and out[s]["angle_err_deg"] < 1e-6
+    assert out["s2"]["vertex_err_cm"] > 0.3 and out["s2"]["angle_err_deg"] > 0.5

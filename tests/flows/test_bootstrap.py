@@ -85,7 +85,8 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
     assert len(result["iterations"]) == 3
     for i in (1, 2):
         it = result["iterations"][i]
-        assert set(it["states"]) == {"infer", "fit", "plan", "render", "features", "train", "test_infer", "evaluate"}
+        assert set(it["states"]) == {"infer", "fit", "pseudo_labels", "plan", "render", "features", "train",
+                                     "test_infer", "evaluate"}
         fits = shards.read_table(layout.stage_dir(i, "fit")).to_pylist()
         assert len(fits) == 4 and sum(r["status"] == "ok" for r in fits) >= 1
         jobs = shards.read_table(layout.stage_dir(i, "render")).to_pylist()
@@ -97,6 +98,15 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
         assert Path(it["predictor"]).is_file() and it["predictor"] != result["iterations"][i - 1]["predictor"]
     rows = shards.read_table(layout.stage_dir(2, "evaluate")).to_pylist()
     assert len(rows) == 4 and all(r["iteration"] == 2 and r["split"] == "test" for r in rows)
+    # pseudo-label quality against the toy collection's hidden ground truth, shown in the report
+    errors = pq.read_table(layout.stage_dir(1, "evaluate") / "pseudo_labels.parquet").to_pylist()
+    assert errors and all(r["vertex_err_cm"] > 0 for r in errors)
+    from bat3r_core import analysis
+    from bat3r_core.report import join_pose_errors
+
+    joined = join_pose_errors(shards.read_table(layout.stage_dir(1, "fit")),
+                               layout.stage_dir(1, "evaluate") / "pseudo_labels.parquet")
+    assert np.isfinite(analysis.summarize_pseudo_labels(joined).mean_vertex_err_cm)
     metrics = pq.read_table(layout.metrics).to_pylist()
     assert sorted(r["iteration"] for r in metrics) == [0, 1, 2]
     assert all(r["n"] + r["n_failed"] == 4 and r["mcd_cm"] > 0 for r in metrics)
@@ -201,7 +211,8 @@ def test_killed_run_resumes_from_its_completed_shards(first_run, catalog, prefec
 def test_raw_image_baseline_trains_on_the_photos_with_fitted_labels(first_run, catalog):
     from flows.bootstrap import bootstrap
 
-    result = bootstrap(category="toy", preset="tiny", iterations=1, run_name="raw", overrides=TINY, raw_images=True)
+    result = bootstrap(category="toy", preset="tiny", iterations=1, run_name="raw", raw_images=True,
+                       overrides={**TINY, "train.batch_size": 4})  # 4 photos: one batch
     layout = RunLayout(catalog / "runs", "toy", "raw")
     it = result["iterations"][1]
     assert "plan" not in it["states"] and set(it["states"]) >= {"infer", "fit", "render", "train", "evaluate"}
