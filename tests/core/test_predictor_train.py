@@ -165,6 +165,14 @@ def test_trainer_checks_dataset_against_model(shards16, tmp_path):
         Trainer(ShardDataset(shards16), ModelConfig(resolution=32, depth=2), SMALL_TRAIN, tmp_path)
 
 
+def _posed_error(trainer, batch) -> float:
+    """Mean posed-point error (metres) of the occupied entries of ``batch`` under the trainer's model."""
+    with torch.no_grad():
+        out = trainer.model(batch.features, batch.mask)
+    occ = batch.targets.occupancy
+    return (out.posed_points - batch.targets.posed_points).norm(dim=-1)[occ].mean().item()
+
+
 def test_overfits_eight_samples_below_two_centimetres(tmp_path):
     write_synthetic_shards(tmp_path / "s", 8, 32, shard_size=8, seed=0, with_head=False)
     ds = ShardDataset(tmp_path / "s")
@@ -173,19 +181,12 @@ def test_overfits_eight_samples_below_two_centimetres(tmp_path):
                             betas=(0.9, 0.999), log_every=100)
     trainer = Trainer(ds, model_cfg, train_cfg, tmp_path / "out")
     batch = ds.get_batch(range(8))
-
-    def posed_error():
-        with torch.no_grad():
-            out = trainer.model(batch.features, batch.mask)
-        occ = batch.targets.occupancy
-        return (out.posed_points - batch.targets.posed_points).norm(dim=-1)[occ].mean().item()
-
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # 1 thread is as fast on 2 shared cores and much faster when they are busy
     try:
-        before = posed_error()
+        before = _posed_error(trainer, batch)
         trainer.train()
-        after = posed_error()
+        after = _posed_error(trainer, batch)
     finally:
         torch.set_num_threads(threads)
     assert before > 0.1
@@ -210,16 +211,9 @@ def test_overfits_eight_rendered_toy_samples_below_two_centimetres(tmp_path, toy
                       TrainConfig(steps=1500, batch_size=8, lr=3e-3, warmup_steps=20, checkpoint_every=10_000,
                                   betas=(0.9, 0.999), log_every=500), tmp_path / "out")
     batch = ds.get_batch(range(8))
-
-    def posed_error():
-        with torch.no_grad():
-            out = trainer.model(batch.features, batch.mask)
-        occ = batch.targets.occupancy
-        return (out.posed_points - batch.targets.posed_points).norm(dim=-1)[occ].mean().item()
-
-    before = posed_error()
+    before = _posed_error(trainer, batch)
     trainer.train()
-    after = posed_error()
+    after = _posed_error(trainer, batch)
     assert before > 0.3
     assert after < 0.02, f"posed-map error of occupied entries {after * 100:.2f} cm after 1500 steps"
 
