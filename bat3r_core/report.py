@@ -314,13 +314,38 @@ def _section_ablation(d: _RunData) -> str:
         "RMS CD: root mean square of the same; MV: model-view alignment (scale and translation only).</p>")
 
 
+def _cluster_samples(samples: pa.Table) -> tuple[pa.Table, str]:
+    """Per-sample rows without cluster ids: cluster the samples' ground-truth pose features (K-Means, K = 10 or
+    fewer for small test sets; one id per sample id across iterations). Returns the rows and a note."""
+    ids = samples.column("sample_id").to_pylist()
+    feats = np.stack([np.asarray(samples.column(c).to_pylist(), dtype=np.float64) for c in ("f_ang", "f_sq", "f_dist")],
+                     1)
+    first = {}
+    for i, sid in enumerate(ids):
+        if sid not in first and np.isfinite(feats[i]).all():
+            first[sid] = i
+    k = min(analysis.DEFAULT_K, len(first))
+    if k < 2:
+        return samples, ""
+    keys = sorted(first)
+    labels = analysis.cluster_poses(feats[[first[s] for s in keys]], k=k, seed=0).labels
+    by_id = dict(zip(keys, labels.tolist()))
+    cluster = pa.array([by_id.get(sid, -1) for sid in ids], pa.int64())
+    out = samples.set_column(samples.column_names.index("cluster"), "cluster", cluster)
+    return out, (f"Clusters computed here from the samples' ground-truth pose features (K-Means, K = {k}), "
+                 "as the per-sample rows carry none.")
+
+
 def _section_clusters(d: _RunData) -> str:
     if d.samples.num_rows == 0:
         return _note("No per-sample evaluation rows yet.")
     split = _main_split(d.samples.column("split").to_pylist())
-    rows = [r for r in evaluation.cluster_breakdown(d.samples) if r["split"] == split]
+    samples, note = d.samples, ""
+    if all(c < 0 for c in samples.column("cluster").to_pylist()):
+        samples, note = _cluster_samples(samples)
+    rows = [r for r in evaluation.cluster_breakdown(samples) if r["split"] == split]
     if not rows:
-        return _note("No cluster ids in the per-sample rows yet (cluster = -1).")
+        return _note("No cluster ids in the per-sample rows, and too few samples with pose features to cluster.")
     iters = sorted({r["iteration"] for r in rows})
     clusters = sorted({r["cluster"] for r in rows})
     fig = Figure(figsize=(max(6.0, 0.7 * len(clusters) * max(1, len(iters)) ** 0.5 + 3), 3.4))
@@ -343,7 +368,9 @@ def _section_clusters(d: _RunData) -> str:
     table = _table(["cluster", "n", "mCD (cm)", "% > 5 cm", "MV mCD (cm)", "ΔR (°)"],
                    [[r["cluster"], r["n"], r["mcd_cm"], r["pct_mcd_over_5cm"], r["mv_mcd_cm"], r["rot_err_deg"]]
                     for r in last], "num")
-    return _png(fig, "per-cluster mCD") + f"<p class=\"caption\">Latest iteration ({iters[-1]}):</p>" + table
+    caption = f"<p class=\"caption\">{html.escape(note)}</p>" if note else ""
+    return (_png(fig, "per-cluster mCD") + caption + f"<p class=\"caption\">Latest iteration ({iters[-1]}):</p>"
+            + table)
 
 
 def _section_failures(d: _RunData) -> str:

@@ -249,3 +249,19 @@ def test_report_loads_in_headless_chromium(full_run, tmp_path):
     res = _chromium(["--window-size=1400,2400", "--hide-scrollbars", f"--screenshot={shot}",
                      (full_run / "report.html").as_uri()], tmp_path / "profile2")
     assert res.returncode == 0 and shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_clusters_are_computed_from_pose_features_when_rows_carry_none(tmp_path):
+    from bat3r_core import evaluation as E
+    from bat3r_core.metrics import SampleMetrics
+
+    rng = np.random.default_rng(5)
+    run = tmp_path / "toy" / "r"
+    for it in (0, 1):
+        rows = [E.sample_row(f"s{i}", "test", it, SampleMetrics(float(2 + i % 7), 3.0, 4.0, 1.0, 0.0, 1.0, 10, 10),
+                             pose_features=rng.random(3) + [0, 0, i % 4]) for i in range(14)]
+        E.write_sample_rows(run / f"iter-{it:02d}" / "evaluate", 0, rows)
+    page = (R.build_report(run)).read_text()
+    section = page[page.index('id="per-cluster"'):]
+    section = section[:section.index("</section>")]
+    assert "Clusters computed here from the samples" in section and "<img" in section
