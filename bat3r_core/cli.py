@@ -169,6 +169,10 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _catalog_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="bat3r", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -194,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     rd.add_argument("--texture", action="append", help="texture image (repeatable; default: the toy's coats)")
     rd.add_argument("--envmap", action="append", help="HDR/EXR environment map (repeatable; default: a sky)")
     rd.add_argument("--shard", type=int, default=0, help="shard index of the output (part-NNNNN)")
-    rd.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    _catalog_option(rd)
     rd.set_defaults(func=_cmd_render)
 
     col = sub.add_parser("collection", help="synthesise image collections")
@@ -206,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     ct.add_argument("--resolution", type=int, default=128, help="image side in pixels")
     ct.add_argument("--preset", default="demo", help="run preset whose render settings to use")
     ct.add_argument("--force", action="store_true", help="re-render even if a matching collection exists")
-    ct.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    _catalog_option(ct)
     ct.set_defaults(func=_cmd_collection_toy)
 
     tr = sub.add_parser("train", help="train a dual point map predictor on rendered training shards")
@@ -214,7 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", required=True, type=Path, help="output folder (checkpoint.pt, predictor.pt, log)")
     tr.add_argument("--preset", default="tiny", help="run preset of the data catalog (tiny, demo, paper)")
     tr.add_argument("--steps", type=int, default=None, help="override the preset's number of steps")
-    tr.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    _catalog_option(tr)
     tr.set_defaults(func=_cmd_train)
 
     pr = sub.add_parser("predict", help="predict dual point maps for an image collection")
@@ -222,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("--collection", required=True, type=Path,
                     help="collection shards, a folder with images/ and masks/, or a Parquet index")
     pr.add_argument("--out", required=True, type=Path, help="output folder (predictions/ and clouds)")
-    pr.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    _catalog_option(pr)
     pr.set_defaults(func=_cmd_predict)
 
     ft = sub.add_parser("fit", help="fit the rigged mesh to predicted dual point clouds")
@@ -233,7 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     ft.add_argument("--steps", type=int, default=None, help="override the preset's optimisation steps")
     ft.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:N)")
     ft.add_argument("--fit-focal", action="store_true", help="also search the focal length in camera recovery")
-    ft.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+    _catalog_option(ft)
     ft.set_defaults(func=_cmd_fit)
 
     ev = sub.add_parser("evaluate", help="recompute metrics.parquet and report.html of a run from its stored rows")

@@ -17,6 +17,7 @@ import pygltflib
 from scipy.spatial.transform import Rotation
 
 from .rig import Rig, RigError
+from .shards import atomic_write
 
 __all__ = ["load_rig", "save_rig_glb", "RigError"]
 
@@ -372,8 +373,4 @@ def save_rig_glb(rig: Rig, path: str | os.PathLike, texture: np.ndarray | None =
         blob.data.append(0)
     gltf.buffers[0].byteLength = len(blob.data)
     gltf.set_binary_blob(bytes(blob.data))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    gltf.save_binary(str(tmp))
-    os.replace(tmp, path)
-    return path
+    return atomic_write(path, lambda tmp: gltf.save_binary(str(tmp)))

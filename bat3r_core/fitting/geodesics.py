@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from bat3r_core.shards import atomic_write
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
@@ -113,9 +114,9 @@ def load_or_compute_geodesics(vertices: np.ndarray, faces: np.ndarray, cache_dir
         if d.shape == (n, n):
             return d
     d = geodesic_distances(vertices, faces, graph)
-    folder.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        np.savez(fh, geodesics=d)
-    os.replace(tmp, path)
+    def _save(tmp: str) -> None:
+        with open(tmp, "wb") as fh:  # a file object: np.savez would append ".npz" to a bare name
+            np.savez(fh, geodesics=d)
+
+    atomic_write(path, _save)
     return d

@@ -21,6 +21,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from bat3r_core.cameras import PinholeCamera
+from bat3r_core.shards import atomic_write
 
 __all__ = ["RenderJob", "JobSchemaError", "JOB_SCHEMA", "VIEW_KINDS", "VIEW_TYPES", "jobs_to_table",
            "jobs_from_table", "write_jobs", "read_jobs", "job_to_dict", "job_from_dict"]
@@ -240,12 +241,8 @@ def jobs_from_table(table: pa.Table) -> list[RenderJob]:
 
 def write_jobs(jobs: Sequence[RenderJob], path: str | os.PathLike) -> Path:
     """Write jobs to a Parquet file (atomically: temporary name, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    pq.write_table(jobs_to_table(jobs), tmp)
-    os.replace(tmp, path)
-    return path
+    table = jobs_to_table(jobs)
+    return atomic_write(path, lambda tmp: pq.write_table(table, tmp))
 
 
 def read_jobs(path: str | os.PathLike) -> list[RenderJob]:
