@@ -85,7 +85,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
         import dataclasses
 
         train_cfg = dataclasses.replace(train_cfg, steps=args.steps)
-    ckpt = train_predictor(args.shards, args.out, model_cfg, train_cfg, _feature_fn(catalog, model_cfg.feature))
+    ckpt = train_predictor(args.shards, args.out, model_cfg, train_cfg, _feature_fn(catalog, model_cfg.feature),
+                           init_from=args.init_from)
     print(f"trained {train_cfg.steps} steps ({args.preset} preset): {ckpt}")
     return 0
 
@@ -218,6 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--out", required=True, type=Path, help="output folder (checkpoint.pt, predictor.pt, log)")
     tr.add_argument("--preset", default="tiny", help="run preset of the data catalog (tiny, demo, paper)")
     tr.add_argument("--steps", type=int, default=None, help="override the preset's number of steps")
+    tr.add_argument("--init-from", type=Path, default=None,
+                    help="predictor.pt whose weights initialise the model (warm start, e.g. the previous iteration's)")
     _catalog_option(tr)
     tr.set_defaults(func=_cmd_train)
 

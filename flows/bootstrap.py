@@ -211,7 +211,7 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                              "out_dir": str(layout.stage_dir(iteration, "render")),
                              "config": {"layers": settings.layers}} for r in fit.records],
                            progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
-        return _train_and_evaluate(settings, category, run_name, iteration, cfg, earlier, render)
+        return _train_and_evaluate(settings, category, run_name, iteration, cfg, earlier, render, predictor)
     plan = run_stage("plan", for_run(plan_views_shard, layout),
                      [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
                        "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "plan")),
@@ -228,12 +228,13 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                        [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(iteration, "render")),
                          "config": cfg["render"]} for i, f in job_files],
                        progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
-    return _train_and_evaluate(settings, category, run_name, iteration, cfg, [*earlier, plan], render)
+    return _train_and_evaluate(settings, category, run_name, iteration, cfg, [*earlier, plan], render, predictor)
 
 
 def _train_and_evaluate(settings: RunSettings, category: str, run_name: str, iteration: int, cfg: dict[str, Any],
-                        earlier: list[StageResult], render: StageResult) -> dict[str, Any]:
-    """features → train Φ_iteration on the iteration's training shards → evaluate it on the test split."""
+                        earlier: list[StageResult], render: StageResult, previous: str) -> dict[str, Any]:
+    """features → train Φ_iteration on the iteration's training shards (from Φ_{iteration-1}'s weights
+    ``previous`` when ``train.warm_start``) → evaluate it on the test split."""
     layout, mff = settings.layout, settings.max_failed_fraction
     features = run_stage("features", for_run(extract_features_shard, layout),
                          [{"input_dir": str(layout.stage_dir(iteration, "render")), "index": r["index"],
@@ -242,7 +243,8 @@ def _train_and_evaluate(settings: RunSettings, category: str, run_name: str, ite
                          progress_key=_progress(settings, iteration, "features"), max_failed_fraction=mff)
     train = run_stage("train", for_run(train_model, layout),
                       [{"shards_dir": str(layout.stage_dir(iteration, "render")),
-                        "out_dir": str(layout.stage_dir(iteration, "train")), "config": cfg["train"]}],
+                        "out_dir": str(layout.stage_dir(iteration, "train")),
+                        "config": {**cfg["train"], "init_from": previous if settings.train.warm_start else None}}],
                       progress_key=_progress(settings, iteration, "train"), max_failed_fraction=0.0)
     new_predictor = train.records[0]["predictor"]
     stages = [*earlier, render, features, train, *_evaluate_test(settings, cfg, iteration, new_predictor)]

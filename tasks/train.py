@@ -35,25 +35,33 @@ def _discard_stale_checkpoint(out_dir: Path, inputs_hash: str) -> None:
         atomic_write_text(stamp, json.dumps({"inputs_hash": inputs_hash}))
 
 
-@stage_task("train", "bat3r_core.predictor.train", inputs=lambda p: training_inputs(p["shards_dir"]),
-            output=lambda p: Path(p["out_dir"]), retries=1, gpu=True)
+def _inputs(p: Mapping[str, Any]) -> list[Path]:
+    init = p["config"].get("init_from")
+    return training_inputs(p["shards_dir"]) + ([Path(init)] if init else [])
+
+
+@stage_task("train", "bat3r_core.predictor.train", inputs=_inputs, output=lambda p: Path(p["out_dir"]), retries=1,
+            gpu=True)
 def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dict:
     """Train the predictor on the training shards of ``shards_dir`` into ``out_dir`` (``predictor.pt``,
     ``checkpoint.pt``, ``train_log.jsonl``). A killed task resumes from ``checkpoint.pt`` on its retry or rerun.
 
-    config: ``{"model": ModelConfig, "train": TrainConfig, "features": FeatureConfig}`` mappings.
+    config: ``{"model": ModelConfig, "train": TrainConfig, "features": FeatureConfig}`` mappings and, for a warm
+    start, ``"init_from"``: the ``predictor.pt`` whose weights initialise the model (part of the cache key).
     Adapted from ``bat3r_core.predictor.train.train_predictor`` (same two calls) to pass the GPU this task holds:
     ``train_predictor`` has no device argument. Returns ``stage, predictor, files, content_hash, steps,
     final_loss`` (the last logged total loss).
     """
-    _discard_stale_checkpoint(Path(out_dir), shards.content_hash(training_inputs(shards_dir)))
+    init_from = config.get("init_from")
+    _discard_stale_checkpoint(Path(out_dir), shards.content_hash(_inputs({"shards_dir": shards_dir,
+                                                                           "config": config})))
     model_cfg = from_mapping(ModelConfig, config["model"], "model")
     train_cfg = from_mapping(TrainConfig, config["train"], "train")
     feature_cfg = from_mapping(FeatureConfig, config["features"], "features")
     dataset = ShardDataset(shards_dir, make_feature_fn(feature_cfg), cache_shards=train_cfg.shuffle_shards)
     with gpu_slot() as device:
         path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
-                                device=None if device is None else f"cuda:{device}").train()
+                                device=None if device is None else f"cuda:{device}", init_from=init_from).train()
     log = Path(out_dir) / "train_log.jsonl"
     last = json.loads(log.read_text().splitlines()[-1]) if log.is_file() and log.read_text().strip() else {}
     return {"stage": "train", "predictor": str(path), "files": [str(path)],

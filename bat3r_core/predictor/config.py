@@ -88,6 +88,11 @@ class TrainConfig:
     """The data order shuffles samples within groups of this many shards (bounds the shard cache)."""
     log_every: int = 10
     """Append a line to ``train_log.jsonl`` every this many steps."""
+    warm_start: bool = False
+    """Refinement iterations: initialise Φ_i with Φ_{i-1}'s weights (fresh optimiser and schedule) instead of a
+    random initialisation. The training data of earlier iterations is still discarded; only the weights carry
+    over. The paper does not say how Φ_i is initialised; small runs (the ``demo`` preset) need the carried-over
+    training to end up better than Φ_0 (see README, "The embedded demo")."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "grad_accum", "checkpoint_every", "shuffle_shards", "log_every"):

@@ -106,10 +106,14 @@ class Trainer:
         dataset: training samples; its resolution, layers and feature channels must match ``model_config``.
         out_dir: where checkpoints, the final predictor and the log go.
         device: ``None`` picks ``cuda:LOCAL_RANK`` when CUDA is available, else CPU.
+        init_from: a ``predictor.pt`` (or training ``checkpoint.pt``) whose weights initialise the model (warm
+            start; optimiser, schedule and data order start fresh). Its model config must equal
+            ``model_config``. Ignored when ``out_dir`` holds a checkpoint to resume (that run started from it).
     """
 
     def __init__(self, dataset: ShardDataset, model_config: ModelConfig, train_config: TrainConfig,
-                 out_dir: str | os.PathLike, device: str | torch.device | None = None) -> None:
+                 out_dir: str | os.PathLike, device: str | torch.device | None = None,
+                 init_from: str | os.PathLike | None = None) -> None:
         if not isinstance(model_config, ModelConfig):
             raise TypeError(f"model_config: expected ModelConfig, got {type(model_config).__name__}")
         if not isinstance(train_config, TrainConfig):
@@ -150,6 +154,8 @@ class Trainer:
         self._order: tuple[int, np.ndarray] | None = None
         if (self.out_dir / CHECKPOINT_NAME).is_file():
             self.load_checkpoint(self.out_dir / CHECKPOINT_NAME)
+        elif init_from is not None:
+            self.load_weights(init_from)
 
     # ----------------------------------------------------------------------------------------------- data order
     def _next_indices(self) -> np.ndarray:
@@ -245,6 +251,19 @@ class Trainer:
         self._barrier()
         return path
 
+    def load_weights(self, path: str | os.PathLike) -> None:
+        """Initialise the model with the weights of a predictor or checkpoint file (warm start)."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"init_from: no such file {path}")
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+            raise ValueError(f"init_from: {path} is not a '{CHECKPOINT_FORMAT}' predictor or checkpoint")
+        if state["model_config"] != to_mapping(self.model_config):
+            raise ValueError(f"init_from: {path} has model_config {state['model_config']}, this run needs "
+                             f"{to_mapping(self.model_config)}")
+        self.model.load_state_dict(state["model"])
+
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         """Restore everything ``save_checkpoint`` wrote; the configs must match this trainer's."""
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -274,7 +293,9 @@ def load_configs(state: dict[str, Any]) -> tuple[ModelConfig, TrainConfig]:
 
 
 def train_predictor(shards_dir: str | os.PathLike, out_dir: str | os.PathLike, model_cfg: ModelConfig,
-                    train_cfg: TrainConfig, feature_fn: FeatureFn | None = None) -> Path:
-    """Train (or resume training) on the training shards of ``shards_dir``; returns ``out_dir/predictor.pt``."""
+                    train_cfg: TrainConfig, feature_fn: FeatureFn | None = None,
+                    init_from: str | os.PathLike | None = None) -> Path:
+    """Train (or resume training) on the training shards of ``shards_dir``; returns ``out_dir/predictor.pt``.
+    ``init_from``: warm-start weights (see :class:`Trainer`)."""
     dataset = ShardDataset(shards_dir, feature_fn, cache_shards=train_cfg.shuffle_shards)
-    return Trainer(dataset, model_cfg, train_cfg, out_dir).train()
+    return Trainer(dataset, model_cfg, train_cfg, out_dir, init_from=init_from).train()

@@ -160,6 +160,30 @@ def test_resume_rejects_a_different_config(shards16, tmp_path):
         Trainer(ShardDataset(shards16), SMALL_MODEL, other, tmp_path)
 
 
+def test_warm_start_begins_from_the_given_weights_and_resumes_from_its_own_checkpoint(shards16, tmp_path):
+    first = Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "phi0")
+    phi0 = first.train()
+    source = _state(first)
+    cold = _state(Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "cold"))
+    warm = Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "phi1", init_from=phi0)
+    assert warm.step == 0
+    assert all(torch.equal(v, source[k]) for k, v in warm.model.state_dict().items())
+    assert not all(torch.equal(v, cold[k]) for k, v in warm.model.state_dict().items())
+    warm.train(until_step=4)  # checkpoint at step 4; a rerun resumes it and ignores init_from
+    resumed = Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "phi1", init_from=phi0)
+    assert resumed.step == 4
+    assert all(torch.equal(v, warm.model.state_dict()[k]) for k, v in resumed.model.state_dict().items())
+
+
+def test_warm_start_rejects_another_architecture_and_missing_files(shards16, tmp_path):
+    phi0 = Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "phi0").train()
+    other = ModelConfig(**{**SMALL_MODEL.__dict__, "base_channels": 4})
+    with pytest.raises(ValueError, match="init_from: .* has model_config"):
+        Trainer(ShardDataset(shards16), other, SMALL_TRAIN, tmp_path / "other", init_from=phi0)
+    with pytest.raises(FileNotFoundError, match="init_from: no such file"):
+        Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "x", init_from=tmp_path / "nope.pt")
+
+
 def test_trainer_checks_dataset_against_model(shards16, tmp_path):
     with pytest.raises(ValueError, match=r"dataset: expected \(H, W, K, C\) = \(32, 32, 4, 3\)"):
         Trainer(ShardDataset(shards16), ModelConfig(resolution=32, depth=2), SMALL_TRAIN, tmp_path)
