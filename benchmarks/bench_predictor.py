@@ -76,8 +76,13 @@ def main() -> dict:
             figures[f"train_samples_per_s_{preset}"] = round(samples, 2)
             figures[f"parameters_{preset}"] = params
         figures["infer_images_per_s_demo"] = round(_infer_rate("demo", root), 2)
+    shapes = []
+    for preset in ("tiny", "demo"):
+        m = preset_configs(preset)[0]
+        shapes.append(f"{preset} {m.resolution}x{m.resolution} K={m.layers} {m.in_channels}-channel features, "
+                      f"{'two-stage' if m.two_stage else 'one-stage'} UNet depth {m.depth} width {m.base_channels}")
     notes = (f"CPU, float32, torch {torch.__version__}, {torch.get_num_threads()} threads; synthetic samples at "
-             "each preset's resolution (tiny 64x64, demo 96x96, K=4, rgb features, two-stage UNet); "
+             f"each preset's resolution ({'; '.join(shapes)}); "
              f"1-minute load average at the end {os.getloadavg()[0]:.1f} (other jobs share the cores).")
     record("predictor", figures, notes)
     for k, v in figures.items():

@@ -3,6 +3,7 @@ training and fitting at tiny sizes; the rerun hits the cache for every task; a S
 completed shards and produces the same metrics."""
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -96,6 +97,12 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
         assert {j["view_kind"] for j in jobs} <= {"estimated", "augmented"}
         assert sum(j["view_kind"] == "estimated" for j in jobs) == len(ok_fits)
         assert Path(it["predictor"]).is_file() and it["predictor"] != result["iterations"][i - 1]["predictor"]
+        # the tiny preset warm-starts: Φ_i was trained from Φ_{i-1}, whose file is part of the train inputs
+        from tasks.train import training_inputs
+
+        stamp = json.loads((layout.stage_dir(i, "train") / "inputs.json").read_text())["inputs_hash"]
+        previous = Path(result["iterations"][i - 1]["predictor"])
+        assert stamp == shards.content_hash(training_inputs(str(layout.stage_dir(i, "render"))) + [previous])
     rows = shards.read_table(layout.stage_dir(2, "evaluate")).to_pylist()
     assert len(rows) == 4 and all(r["iteration"] == 2 and r["split"] == "test" for r in rows)
     # pseudo-label quality against the toy collection's hidden ground truth, shown in the report
