@@ -1,0 +1,19 @@
+"""``make demo``'s recorded figures and verdict (flows/demo.py), from metrics rows as metrics.parquet holds them."""
+import math
+
+from flows.demo import demo_figures
+
+
+def _row(iteration, mcd, rot):
+    return {"iteration": iteration, "split": "test", "mcd_cm": mcd, "rot_err_deg": rot}
+
+
+def test_figures_and_verdict_follow_the_ratio_of_last_to_canonical_mcd():
+    figures, verdict = demo_figures([_row(0, 13.114, 40.74), _row(1, 12.41, 35.47), _row(2, 11.478, 25.33)], 13.204)
+    assert verdict == "NOT met"
+    assert figures == {"minutes": 13.2, "mcd_canonical_cm": 13.114, "mcd_last_cm": 11.478, "mcd_ratio": 0.875,
+                       "iterations": 2, "mcd_iter1_cm": 12.41, "rot_err_canonical_deg": 40.7,
+                       "rot_err_last_deg": 25.3}
+    figures, verdict = demo_figures([_row(0, 12.0, 30.0), _row(1, 9.0, float("nan"))], 5.0)
+    assert verdict == "met" and figures["mcd_ratio"] == 0.75  # the goal is <= 0.75: the boundary passes
+    assert "rot_err_last_deg" not in figures and not any(math.isnan(v) for v in figures.values())
