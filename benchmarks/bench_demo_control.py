@@ -1,19 +1,20 @@
 """Same-compute control for ``make demo``: does the bootstrap loop beat simply training Φ₀ longer?
 
-Reads the finished demo run (``runs/toy/<run name>``, default ``demo``), then continues Φ₀ on the canonical renders
-of iteration 0 for as many warm-started rounds as the loop has iterations, each round with the demo preset's
-training schedule — the same training compute as the loop's Φ_1 … Φ_n, but on rest-pose renders only. Every
-round is evaluated on the same test split with the same metrics as the loop (``bat3r_core.evaluation``), and
-``benchmarks/results/demo_control.json`` records both sequences side by side:
+Reads the finished demo run (``runs/toy/<run name>``, default ``demo``; the overrides its manifest records apply),
+then continues Φ₀ on the canonical renders of iteration 0 for as many warm-started rounds as the loop has
+iterations, each round with the run's training schedule — the same training compute as the loop's Φ_1 … Φ_n, but
+on rest-pose renders only. Every round is evaluated on the same test split with the same metrics as the loop
+(``bat3r_core.evaluation``), and ``benchmarks/results/<record-as>.json`` records both sequences side by side:
 ``mcd_loop_cm_iter<i>`` (from the run's ``metrics.parquet``) and ``mcd_control_cm_iter<i>``.
 
-    python benchmarks/bench_demo_control.py [--run-name demo]
+    python benchmarks/bench_demo_control.py [--run-name demo] [--record-as demo_control]
 
 Takes about 3 minutes per iteration on 2 CPU cores.
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from bat3r_core.predictor.features import make_feature_fn  # noqa: E402
 from bat3r_core.predictor.infer import predict_collection  # noqa: E402
 from bat3r_core.predictor.train import Trainer  # noqa: E402
 from bat3r_core.rig_io import load_rig  # noqa: E402
+from bat3r_core.runs import read_manifest  # noqa: E402
 from flows._settings import Ablations, resolve_run  # noqa: E402
 
 
@@ -57,12 +59,17 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run-name", default="demo")
     p.add_argument("--preset", default="demo")
+    p.add_argument("--record-as", default="demo_control", help="name of the results/<name>.json to write")
     args = p.parse_args(argv)
-    settings = resolve_run("toy", args.preset, args.run_name, {}, Ablations())
-    layout = settings.layout
+    layout = resolve_run("toy", args.preset, args.run_name, {}, Ablations()).layout
+    if not layout.manifest.is_file():
+        raise FileNotFoundError(f"{layout.manifest}: run `make demo` (or flows/demo.py --run-name {args.run_name}) "
+                                "first")
+    overrides = read_manifest(layout)["config"]["parameters"]["overrides"]  # the run's own settings
+    settings = resolve_run("toy", args.preset, args.run_name, overrides, Ablations())
     metrics_path = layout.metrics
     if not metrics_path.is_file():
-        raise FileNotFoundError(f"{metrics_path}: run `make demo` (or flows/demo.py --run-name {args.run_name}) first")
+        raise FileNotFoundError(f"{metrics_path}: the run has no metrics yet; finish it first")
     loop = {int(r["iteration"]): float(r["mcd_cm"]) for r in evaluation.read_metrics(layout.root).to_pylist()
             if r["split"] == "test"}
     iterations = max(loop)
@@ -82,10 +89,10 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"iteration {it}: loop {loop[it]:.2f} cm, canonical-only control {mcd:.2f} cm (ΔR {rot:.1f}°)")
     figures["ratio_loop"] = round(loop[iterations] / loop[0], 3)
     figures["ratio_control"] = round(figures[f"mcd_control_cm_iter{iterations}"] / loop[0], 3)
-    record("demo_control", figures,
-           notes=(f"toy, {args.preset} preset, run {args.run_name!r}: the loop's test mCD per iteration next to Φ₀ "
-                  f"trained on for the same number of warm-started rounds ({settings.train.steps} steps each) on "
-                  "its canonical renders only; 2 CPU cores"))
+    record(args.record_as, figures,
+           notes=(f"toy, {args.preset} preset, run {args.run_name!r} (overrides {overrides}): the loop's test mCD "
+                  f"per iteration next to Φ₀ trained on for the same number of warm-started rounds "
+                  f"({settings.train.steps} steps each) on its canonical renders only; {os.cpu_count()} CPU cores"))
     return figures
 
 
