@@ -27,7 +27,7 @@ from bat3r_core.pointmaps import dual_point_cloud
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.data import FeatureFn, rgb_features
 from bat3r_core.predictor.network import DualPointMapNet
-from bat3r_core.predictor.train import CHECKPOINT_FORMAT, load_configs
+from bat3r_core.predictor.train import load_configs, read_state
 from bat3r_core.shards import STATUS_OK, ShardPaths, atomic_write, list_shards, read_shard, shard_paths, write_shard
 
 #: Reference inference filters.
@@ -46,12 +46,7 @@ def load_predictor(ckpt: str | os.PathLike, device: str | torch.device | None = 
     """Load ``predictor.pt`` (or a training ``checkpoint.pt``) -> (model in eval mode on ``device``, configs).
 
     ``device=None`` picks CUDA when available, else CPU."""
-    path = Path(ckpt)
-    if not path.is_file():
-        raise FileNotFoundError(f"ckpt: no such file {path}")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"ckpt: {path} is not a '{CHECKPOINT_FORMAT}' predictor checkpoint")
+    state = read_state(ckpt, "ckpt")
     model_cfg, train_cfg = load_configs(state)
     model = DualPointMapNet(model_cfg)
     model.load_state_dict(state["model"])

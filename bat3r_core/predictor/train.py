@@ -72,6 +72,18 @@ def _torch_save_atomic(obj: Any, path: Path) -> None:
     atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
+def read_state(path: str | os.PathLike, argument: str) -> dict[str, Any]:
+    """The state dict of a ``predictor.pt`` or training ``checkpoint.pt`` (``torch.load(weights_only=True)``),
+    checked to be one: a missing file or another kind of file is an error naming ``argument`` and the path."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{argument}: no such file {path}")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{argument}: {path} is not a '{CHECKPOINT_FORMAT}' predictor checkpoint")
+    return state
+
+
 def _rng_state() -> dict[str, Any]:
     np_state = np.random.get_state()
     py_state = random.getstate()
@@ -253,12 +265,7 @@ class Trainer:
 
     def load_weights(self, path: str | os.PathLike) -> None:
         """Initialise the model with the weights of a predictor or checkpoint file (warm start)."""
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"init_from: no such file {path}")
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"init_from: {path} is not a '{CHECKPOINT_FORMAT}' predictor or checkpoint")
+        state = read_state(path, "init_from")
         if state["model_config"] != to_mapping(self.model_config):
             raise ValueError(f"init_from: {path} has model_config {state['model_config']}, this run needs "
                              f"{to_mapping(self.model_config)}")
@@ -266,9 +273,9 @@ class Trainer:
 
     def load_checkpoint(self, path: str | os.PathLike) -> None:
         """Restore everything ``save_checkpoint`` wrote; the configs must match this trainer's."""
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        if state.get("format") != CHECKPOINT_FORMAT or "optimizer" not in state:
-            raise ValueError(f"checkpoint {path}: expected a '{CHECKPOINT_FORMAT}' training checkpoint")
+        state = read_state(path, "checkpoint")
+        if "optimizer" not in state:
+            raise ValueError(f"checkpoint: {path} is a predictor without optimiser state, not a training checkpoint")
         for name, mine in (("model_config", self.model_config), ("train_config", self.config)):
             if state[name] != to_mapping(mine):
                 raise ValueError(f"checkpoint {path}: {name} differs from this run's: {state[name]} vs "
