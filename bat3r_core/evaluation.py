@@ -496,10 +496,15 @@ def pseudo_label_errors(fit_rows: Sequence[Mapping[str, Any]], ground_truth: Map
 
 
 def write_pseudo_label_errors(fit_dir: str | os.PathLike, ground_truth: Mapping[str, Mapping], rig,
-                              out_dir: str | os.PathLike) -> Path:
-    """:func:`pseudo_label_errors` of every fit shard of ``fit_dir`` → ``out_dir/pseudo_labels.parquet``."""
+                              out_dir: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
+    """:func:`pseudo_label_errors` of every fit shard of ``fit_dir`` → ``out_dir/pseudo_labels.parquet``.
+
+    Returns the file and a summary ``{"n", "joint_err_cm", "vertex_err_cm", "angle_err_deg"}`` (means over the
+    rows; None without rows)."""
     rows = pseudo_label_errors(shards.read_table(fit_dir).to_pylist(), ground_truth, rig)
-    schema = pa.schema([("sample_id", pa.string()), ("joint_err_cm", pa.float64()), ("vertex_err_cm", pa.float64()),
-                        ("angle_err_deg", pa.float64())])
+    columns = ("joint_err_cm", "vertex_err_cm", "angle_err_deg")
+    schema = pa.schema([("sample_id", pa.string())] + [(c, pa.float64()) for c in columns])
     table = pa.Table.from_pylist(rows, schema=schema)
-    return atomic_write(Path(out_dir) / PSEUDO_LABEL_FILE, lambda tmp: pq.write_table(table, tmp))
+    path = atomic_write(Path(out_dir) / PSEUDO_LABEL_FILE, lambda tmp: pq.write_table(table, tmp))
+    means = {c: (float(np.mean([r[c] for r in rows])) if rows else None) for c in columns}
+    return path, {"n": len(rows), **means}

@@ -78,14 +78,8 @@ def pseudo_label_quality(fit_dir: str, out_dir: str, config: dict) -> dict:
     (``bat3r_core.evaluation.write_pseudo_label_errors``) → ``out_dir/pseudo_labels.parquet``.
     config: ``{"asset", "ground_truth" (the collection's ground_truth.npz)}``. Returns ``stage, files,
     content_hash, n`` and the mean errors."""
-    import pyarrow.parquet as pq
-
     from bat3r_core.rig_io import load_rig
 
-    path = evaluation.write_pseudo_label_errors(fit_dir, evaluation.load_ground_truth(config["ground_truth"]),
-                                                load_rig(config["asset"]), out_dir)
-    rows = pq.read_table(path).to_pylist()
-    mean = {k: (sum(r[k] for r in rows) / len(rows) if rows else None)
-            for k in ("joint_err_cm", "vertex_err_cm", "angle_err_deg")}
-    return {"stage": "pseudo_labels", "files": [str(path)], "content_hash": shards.content_hash([path]),
-            "n": len(rows), **mean}
+    path, summary = evaluation.write_pseudo_label_errors(
+        fit_dir, evaluation.load_ground_truth(config["ground_truth"]), load_rig(config["asset"]), out_dir)
+    return {"stage": "pseudo_labels", "files": [str(path)], "content_hash": shards.content_hash([path]), **summary}

@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from bat3r_core import shards
-from bat3r_core.shards import atomic_write_text
 from bat3r_core.config_utils import from_mapping
 from bat3r_core.predictor import train as training
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
@@ -32,7 +31,7 @@ def _discard_stale_checkpoint(out_dir: Path, inputs_hash: str) -> None:
         for name in ("checkpoint.pt", "predictor.pt", "train_log.jsonl"):
             (out_dir / name).unlink(missing_ok=True)
         out_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(stamp, json.dumps({"inputs_hash": inputs_hash}))
+        shards.atomic_write_text(stamp, json.dumps({"inputs_hash": inputs_hash}))
 
 
 def _inputs(p: Mapping[str, Any]) -> list[Path]:
@@ -52,7 +51,6 @@ def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dic
     ``train_predictor`` has no device argument. Returns ``stage, predictor, files, content_hash, steps,
     final_loss`` (the last logged total loss).
     """
-    init_from = config.get("init_from")
     _discard_stale_checkpoint(Path(out_dir), shards.content_hash(_inputs({"shards_dir": shards_dir,
                                                                            "config": config})))
     model_cfg = from_mapping(ModelConfig, config["model"], "model")
@@ -61,9 +59,11 @@ def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dic
     dataset = ShardDataset(shards_dir, make_feature_fn(feature_cfg), cache_shards=train_cfg.shuffle_shards)
     with gpu_slot() as device:
         path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
-                                device=None if device is None else f"cuda:{device}", init_from=init_from).train()
+                                device=None if device is None else f"cuda:{device}",
+                                init_from=config.get("init_from")).train()
     log = Path(out_dir) / "train_log.jsonl"
-    last = json.loads(log.read_text().splitlines()[-1]) if log.is_file() and log.read_text().strip() else {}
+    lines = log.read_text().splitlines() if log.is_file() else []
+    last = json.loads(lines[-1]) if lines else {}
     return {"stage": "train", "predictor": str(path), "files": [str(path)],
             "content_hash": shards.content_hash([path]), "steps": train_cfg.steps,
             "final_loss": last.get("total"), "n_samples": len(dataset)}

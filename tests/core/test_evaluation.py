@@ -116,7 +116,7 @@ def test_evaluate_run_on_an_empty_run(tmp_path):
         E.evaluate_run(tmp_path / "missing")
 
 
-def test_pseudo_label_errors_zero_for_the_true_pose_and_blind_to_global_placement(toy_rig):
+def test_pseudo_label_errors_zero_for_the_true_pose_and_blind_to_global_placement(toy_rig, tmp_path):
     from bat3r_core.poses import sample_toy_natural_poses
 
     theta, _ = sample_toy_natural_poses(3, seed=404)
@@ -131,3 +131,14 @@ def test_pseudo_label_errors_zero_for_the_true_pose_and_blind_to_global_placemen
     for s in ("s0", "s1"):
         assert out[s]["vertex_err_cm"] < 1e-6 and out[s]["joint_err_cm"] < 1e-6 and out[s]["angle_err_deg"] < 1e-6
     assert out["s2"]["vertex_err_cm"] > 0.3 and out["s2"]["angle_err_deg"] > 0.5
+    # the stage writer: the same rows in pseudo_labels.parquet, and their means as the task's summary
+    from bat3r_core.shards import write_shard
+
+    stored = [{**r, "reason": ""} for r in rows]
+    write_shard(tmp_path / "fit", 0, stored[:3])
+    write_shard(tmp_path / "fit", 1, stored[3:])
+    path, summary = E.write_pseudo_label_errors(tmp_path / "fit", gt, toy_rig, tmp_path / "evaluate")
+    table = pq.read_table(path).to_pylist()
+    assert path.name == E.PSEUDO_LABEL_FILE and sorted(r["sample_id"] for r in table) == ["s0", "s1", "s2"]
+    assert summary["n"] == 3
+    assert summary["vertex_err_cm"] == pytest.approx(out["s2"]["vertex_err_cm"] / 3, rel=1e-9, abs=1e-9)
