@@ -18,8 +18,6 @@ import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -36,23 +34,17 @@ from bat3r_core.runs import read_manifest  # noqa: E402
 from flows._settings import Ablations, resolve_run  # noqa: E402
 
 
-def _test_mcd(settings, predictor: Path, out: Path, iteration: int) -> tuple[float, float]:
-    """(mCD cm, mean ΔR degrees) of ``predictor`` on the run's test split, as the loop's evaluate stage computes
-    them."""
-    gt_dir = Path(settings.test_split["ground_truth"])
-    feature_fn = make_feature_fn(settings.features)
-    predict_collection(predictor, settings.layout.run_stage_dir("test"), out / "test_infer", feature_fn=feature_fn,
-                       device="cpu")
-    gt = evaluation.load_ground_truth(gt_dir / "ground_truth.npz")
+def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: int) -> dict:
+    """The test-split metrics row of ``predictor`` (``evaluation.aggregate``), computed as the loop's test_infer and
+    evaluate stages compute them for ``iteration`` (same features, ground truth and sampling seed)."""
+    predict_collection(predictor, settings.layout.run_stage_dir("test"), out / "test_infer",
+                       feature_fn=make_feature_fn(settings.features), device="cpu")
+    gt = evaluation.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
     rig = load_rig(settings.assets.asset)
     for i in shards.list_shards(out / "test_infer"):
         evaluation.evaluate_prediction_shard(out / "test_infer", i, gt, rig, settings.body_frame, "test", iteration,
-                                             out / "evaluate", seed=0)
-    table = shards.read_table(out / "evaluate")
-    ok = np.array([s == shards.STATUS_OK for s in table["status"].to_pylist()])
-    cd = np.asarray(table["cd_cm"].to_pylist(), dtype=np.float64)[ok]
-    rot = np.asarray(table["rot_err_deg"].to_pylist(), dtype=np.float64)[ok]
-    return float(cd.mean()), float(rot.mean())
+                                             out / "evaluate", seed=seed)
+    return evaluation.aggregate(shards.read_table(out / "evaluate"))[0]
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -65,7 +57,8 @@ def main(argv: list[str] | None = None) -> dict:
     if not layout.manifest.is_file():
         raise FileNotFoundError(f"{layout.manifest}: run `make demo` (or flows/demo.py --run-name {args.run_name}) "
                                 "first")
-    overrides = read_manifest(layout)["config"]["parameters"]["overrides"]  # the run's own settings
+    parameters = read_manifest(layout)["config"]["parameters"]  # the run's own settings and seed
+    overrides, run_seed = parameters["overrides"], int(parameters["seed"])
     settings = resolve_run("toy", args.preset, args.run_name, overrides, Ablations())
     metrics_path = layout.metrics
     if not metrics_path.is_file():
@@ -82,7 +75,8 @@ def main(argv: list[str] | None = None) -> dict:
         out = layout.root / "control" / f"round-{it:02d}"
         trainer = Trainer(dataset, settings.model, settings.train, out / "train", device="cpu", init_from=previous)
         previous = trainer.train()
-        mcd, rot = _test_mcd(settings, previous, out, it)
+        row = _test_metrics(settings, previous, out, it, seed=run_seed + it)  # the loop evaluates i with seed + i
+        mcd, rot = row["mcd_cm"], row["rot_err_deg"]
         figures[f"mcd_loop_cm_iter{it}"] = round(loop[it], 3)
         figures[f"mcd_control_cm_iter{it}"] = round(mcd, 3)
         figures[f"rot_err_control_deg_iter{it}"] = round(rot, 1)
