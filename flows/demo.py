@@ -57,15 +57,14 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         print("no test metrics (the test split has no ground truth)")
         return 1
-    first, last = rows[0]["mcd_cm"], rows[-1]["mcd_cm"]
-    ratio = last / first if first else float("nan")
-    print(f"\n{minutes:.1f} min; mCD canonical {first:.2f} cm -> iteration {rows[-1]['iteration']} {last:.2f} cm "
-          f"(ratio {ratio:.2f}; the method's claim at this scale: <= 0.75)")
+    figures, verdict = demo_figures(rows, minutes)
+    print(f"\n{minutes:.1f} min; mCD canonical {figures['mcd_canonical_cm']:.2f} cm -> iteration "
+          f"{figures['iterations']} {figures['mcd_last_cm']:.2f} cm (ratio {figures['mcd_ratio']:.2f}; the method's "
+          f"claim at this scale: <= 0.75, {verdict})")
     if not args.no_record and args.preset == "demo":
         sys.path.insert(0, str(ROOT / "benchmarks"))
         from _results import record
 
-        figures, verdict = demo_figures(rows, minutes)
         record("demo", figures,
                notes=(f"make demo: bootstrap on the toy category, demo preset, {os.cpu_count()} CPU cores; mCD on the "
                       f"toy test split; the goal mcd_last <= 0.75 x mcd_canonical is {verdict}. "
