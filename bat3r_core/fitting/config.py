@@ -6,7 +6,6 @@ below hold the values of the paper's supplement and of REFERENCE.md.
 from __future__ import annotations
 
 import os
-
 from dataclasses import dataclass
 from typing import Any, Mapping
 

@@ -19,9 +19,10 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from bat3r_core.shards import atomic_write
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
+
+from bat3r_core.shards import atomic_write
 
 __all__ = ["mesh_hash", "geodesic_distances", "load_or_compute_geodesics", "default_cache_dir"]
 

@@ -233,7 +233,7 @@ def instances_from_predictions(predictions_dir: str | os.PathLike, index: int, c
     from bat3r_core.predictor.infer import clouds_path, load_clouds
     from bat3r_core.shards import read_shard
 
-    table, arrays = read_shard(predictions_dir, index, with_arrays=False)
+    table, _ = read_shard(predictions_dir, index, with_arrays=False)
     rows = table.to_pylist()
     clouds = load_clouds(clouds_path(predictions_dir, index))
     if len(clouds) != len(rows):

@@ -37,3 +37,26 @@ def test_train_then_predict(tmp_path, capsys):
     assert sorted(r["sample_id"] for r in rows) == ["blank", "img0", "img1", "img2"]
     status = {r["sample_id"]: r["status"] for r in rows}
     assert status["blank"] == "empty_mask" and "predicted" in out and "blank: empty_mask" in out
+
+
+def test_train_init_from_starts_from_the_given_predictor(tmp_path):
+    import torch
+
+    from bat3r_core.predictor.infer import load_predictor
+
+    shards = tmp_path / "shards"
+    write_synthetic_shards(shards, n=8, resolution=32, shard_size=4, seed=0)
+    base = ["train", "--shards", str(shards), "--preset", "tiny"]
+    assert main([*base, "--out", str(tmp_path / "phi0"), "--steps", "20"]) == 0
+    phi0 = tmp_path / "phi0" / "predictor.pt"
+    # one step moves the weights only slightly from where they started: from Φ0 when warm, from a fresh init when not
+    assert main([*base, "--out", str(tmp_path / "warm"), "--steps", "1", "--init-from", str(phi0)]) == 0
+    assert main([*base, "--out", str(tmp_path / "cold"), "--steps", "1"]) == 0
+    start = load_predictor(phi0, "cpu")[0].state_dict()
+
+    def distance(folder):
+        got = load_predictor(tmp_path / folder / "predictor.pt", "cpu")[0].state_dict()
+        return sum(float((got[k].float() - start[k].float()).norm()) for k in start)
+
+    warm, cold = distance("warm"), distance("cold")
+    assert warm < 0.3 * cold, (warm, cold)
