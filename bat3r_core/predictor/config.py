@@ -92,7 +92,7 @@ class TrainConfig:
     """Refinement iterations: initialise Φ_i with Φ_{i-1}'s weights (fresh optimiser and schedule) instead of a
     random initialisation. The training data of earlier iterations is still discarded; only the weights carry
     over. The paper does not say how Φ_i is initialised; small runs (the ``demo`` preset) need the carried-over
-    training to end up better than Φ_0 (see README, "The embedded demo")."""
+    training to end up better than Φ_0 (see the README, "The two commands")."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "grad_accum", "checkpoint_every", "shuffle_shards", "log_every"):
