@@ -214,7 +214,10 @@ class Catalog:
             raise KeyError(f"unknown category '{name}' in {self.path}; available: {sorted(self.categories)}")
         return self.categories[name]
 
-    def run_preset(self, name: str) -> RunPreset:
+    def run_preset(self, name: "str | RunPreset") -> RunPreset:
+        """The run preset ``name``; a :class:`RunPreset` passes through (e.g. one with run overrides applied)."""
+        if isinstance(name, RunPreset):
+            return name
         if name not in self.runs:
             raise KeyError(f"unknown run preset '{name}' in {self.path}; available: {sorted(self.runs)}")
         return self.runs[name]
@@ -247,7 +250,7 @@ class Catalog:
             data.update(self.category(category).camera_prior)
         return _stage(CameraPriorConfig, data, "camera_prior")
 
-    def fitting_config(self, category: str, run: str | None = None):
+    def fitting_config(self, category: str, run: "str | RunPreset | None" = None):
         from .fitting.config import FittingConfig
 
         cat = self.category(category)
@@ -259,17 +262,17 @@ class Catalog:
             cfg = replace_path(cfg, k, v)
         return cfg
 
-    def model_config(self, run: str):
+    def model_config(self, run: "str | RunPreset"):
         from .predictor.config import ModelConfig
 
         preset = self.run_preset(run)
         data = {"resolution": preset.image_size, "layers": self.layers, "feature": preset.features, **preset.model}
-        return _stage(ModelConfig, data, f"runs.{run}.model")
+        return _stage(ModelConfig, data, f"runs.{_label(run)}.model")
 
-    def train_config(self, run: str):
+    def train_config(self, run: "str | RunPreset"):
         from .predictor.config import TrainConfig
 
-        return _stage(TrainConfig, self.run_preset(run).train, f"runs.{run}.train")
+        return _stage(TrainConfig, self.run_preset(run).train, f"runs.{_label(run)}.train")
 
     def feature_config(self, run: str | None = None, extractor: str | None = None):
         """``FeatureConfig`` from the ``features`` section; the extractor is ``extractor``, else the run preset's."""
@@ -285,12 +288,12 @@ class Catalog:
                 else data["cache_dir"]
         return _stage(FeatureConfig, data, "features")
 
-    def render_config(self, run: str):
+    def render_config(self, run: "str | RunPreset"):
         from .render.config import RenderConfig
 
         preset = self.run_preset(run)
         data = {"resolution": preset.image_size, **preset.render}
-        return _stage(RenderConfig, data, f"runs.{run}.render")
+        return _stage(RenderConfig, data, f"runs.{_label(run)}.render")
 
     def validate_stage_sections(self) -> None:
         """Check every stage section against its config class (raises ConfigError naming the key path)."""
@@ -304,6 +307,11 @@ class Catalog:
             self.train_config(run)
             self.render_config(run)
             self.feature_config(run)
+
+
+def _label(run: "str | RunPreset") -> str:
+    """How a run preset is named in error messages (an overridden preset object has no name of its own)."""
+    return run if isinstance(run, str) else "<preset with overrides>"
 
 
 def _stage(cls, data: dict[str, Any], path: str):

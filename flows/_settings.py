@@ -145,10 +145,11 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
     run = catalog.run_preset(preset)
     for key, value in ov["run"].items():
         run = replace_path(run, key, value)
-    render = catalog.render_config(preset)
-    model = catalog.model_config(preset)
-    train = catalog.train_config(preset)
-    fitting = catalog.fitting_config(category, preset)
+    # stage configs from the run preset with its overrides applied (run.image_size reaches render and model)
+    render = catalog.render_config(run)
+    model = catalog.model_config(run)
+    train = catalog.train_config(run)
+    fitting = catalog.fitting_config(category, run)
     prior = catalog.camera_prior_config(category)
     features = FeatureConfig(extractor=run.features,
                              cache_dir=str(catalog.storage() / "_cache" / "features" / category))

@@ -37,6 +37,10 @@ def test_overrides_reach_their_stage_configs(catalog, tmp_path):
     assert s.test_split["ground_truth"].endswith("test_ground_truth/n8-r32") and s.test_split["n"] == 8
     m = s.to_mapping()
     assert m["train"]["steps"] == 7 and m["run_dir"] == str(s.layout.root)
+    # run-preset overrides reach the stage configs derived from the preset (resolution, features, fitting)
+    s = resolve_run("toy", "tiny", "r2", {"run.image_size": 48, "run.fitting": {"steps": 9}}, catalog=catalog)
+    assert s.model.resolution == s.render.resolution == s.image_size == 48 and s.fitting.steps == 9
+    assert s.collection["path"].endswith("n16-r48")
 
 
 @pytest.mark.parametrize("overrides, match", [
