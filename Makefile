@@ -7,7 +7,7 @@ STAMP := $(VENV)/.bat3r-installed
 TORCH_VERSION := 2.13.0
 PYTEST_ARGS ?=
 
-.PHONY: install test demo bench server server-stop clean browser-deps system-libs
+.PHONY: install test demo bench bench-demo server server-stop clean browser-deps system-libs
 
 $(PY):
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "bat3r needs Python 3.11 ($(PYTHON) not found; set PYTHON=...)"; exit 1; }
@@ -51,8 +51,14 @@ test: install browser-deps
 demo: install
 	$(PY) flows/demo.py
 
+# Stage benchmarks; the analyses of a finished demo run (control, fit oracle) are `make bench-demo`.
+RUN_ANALYSES := benchmarks/bench_demo_control.py benchmarks/bench_fit_oracle.py
 bench: install
-	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
+	@for b in $(filter-out $(RUN_ANALYSES),$(wildcard benchmarks/bench_*.py)); do \
+		echo "== $$b"; $(PY) $$b || exit 1; done
+
+bench-demo: demo
+	@for b in $(RUN_ANALYSES); do echo "== $$b"; $(PY) $$b || exit 1; done
 
 # A local Prefect server (127.0.0.1), the process work pool, the deployments of deploy/prefect.yaml and a worker.
 server: install

@@ -1,0 +1,160 @@
+"""Which predicted map spoils the fits? Pseudo-label quality with ground-truth maps substituted.
+
+For a finished toy run (``runs/toy/<run name>``; the overrides its manifest records apply), takes the predictions
+on the collection that iteration ``--iteration`` fitted (by default 1: Φ₀'s predictions) and, for every predicted
+point, the true canonical point Q* and posed point P* of the same pixel and layer, ray-cast from the hidden
+ground truth (pose, camera) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
+
+* the per-image RMS error of the predicted Q and of the predicted P (centred, per camera axis; z is depth);
+* the pose error of fits (``bat3r_core.evaluation.pseudo_label_errors``: mean vertex error after rigid alignment)
+  with the run's fitting configuration on four versions of the same points: as predicted, with P replaced by P*,
+  with Q replaced by Q*, with both replaced, next to the rest pose (no fitting at all).
+
+Only points whose pixel and layer are occupied in the truth take part, in every version, so the four fits see
+the same points. A fit is only worth rendering when it beats the rest pose; the table says which map has to
+improve for that. Results: ``benchmarks/results/<record-as>.json`` and ``RESULTS.md``.
+
+    python benchmarks/bench_fit_oracle.py [--run-name demo] [--iteration 1] [--record-as fit_oracle]
+
+About 2 minutes per version on 2 CPU cores for the demo's 192 images.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _results import record  # noqa: E402
+
+from bat3r_core import evaluation, shards  # noqa: E402
+from bat3r_core.cameras import PinholeCamera  # noqa: E402
+from bat3r_core.fitting.fit import FittingAsset, PointCloudInstance, fit_batch  # noqa: E402
+from bat3r_core.fitting.io import fit_rows, instances_from_predictions  # noqa: E402
+from bat3r_core.pointmaps import dual_point_maps  # noqa: E402
+from bat3r_core.rig_io import load_rig  # noqa: E402
+from bat3r_core.runs import read_manifest  # noqa: E402
+from flows._settings import Ablations, resolve_run  # noqa: E402
+
+VERSIONS = {"predicted": (False, False), "true_P": (True, False), "true_Q": (False, True), "true_P_and_Q": (True, True)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Truth:
+    """Ground truth at an instance's predicted (pixel, layer) entries."""
+
+    occupied: np.ndarray  # (N,) bool: the entry is on the true surface
+    P: np.ndarray  # (N, 3) camera frame minus the true object depth (the posed-map convention)
+    Q: np.ndarray  # (N, 3) canonical frame
+
+
+def truth_at_points(inst: PointCloudInstance, gt: dict, rig, resolution: int) -> Truth:
+    """Ray-cast the true posed mesh of ``inst`` with its true camera and read the maps at its points."""
+    k = np.asarray(gt["K"], np.float64)
+    camera = PinholeCamera(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=resolution, height=resolution,
+                           R=np.asarray(gt["camera_rotation"]), t=np.asarray(gt["camera_translation"]))
+    maps = dual_point_maps(gt["posed_vertices"], rig.rest_vertices, rig.faces, camera, 4, "world", nthreads=1)
+    u = np.clip(np.floor(inst.pixels[:, 0]).astype(int), 0, resolution - 1)
+    v = np.clip(np.floor(inst.pixels[:, 1]).astype(int), 0, resolution - 1)
+    layer = np.clip(inst.layers, 0, maps.occupancy.shape[-1] - 1)
+    return Truth(maps.occupancy[v, u, layer], maps.P[v, u, layer] - np.array([0.0, 0.0, maps.object_depth]),
+                 maps.Q[v, u, layer].astype(np.float64))
+
+
+def map_errors(inst: PointCloudInstance, truth: Truth) -> dict[str, float]:
+    """Per-image RMS errors (cm) of the predicted maps at truly occupied entries; P is compared centred (the fit's
+    similarity absorbs a translation), per camera axis."""
+    o = truth.occupied
+    dq = inst.canonical_points[o] - truth.Q[o]
+    dp = inst.posed_points[o] - truth.P[o]
+    dp = dp - dp.mean(0)
+    rms_p = 100 * np.sqrt((dp ** 2).mean(0))
+    return {"occupied_fraction": float(o.mean()), "q_rms_cm": float(100 * np.sqrt((dq ** 2).sum(1).mean())),
+            "q_median_cm": float(100 * np.median(np.linalg.norm(dq, axis=1))),
+            "p_rms_x_cm": float(rms_p[0]), "p_rms_y_cm": float(rms_p[1]), "p_rms_z_cm": float(rms_p[2])}
+
+
+def substitute(inst: PointCloudInstance, truth: Truth, true_p: bool, true_q: bool) -> PointCloudInstance:
+    """``inst`` restricted to its truly occupied entries, with P and/or Q replaced by the truth (P* moved to the
+    predicted centroid so that only its shape differs)."""
+    o = truth.occupied
+    p, q = inst.posed_points[o], inst.canonical_points[o]
+    if true_p:
+        p = truth.P[o] - truth.P[o].mean(0) + p.mean(0)
+    if true_q:
+        q = truth.Q[o]
+    keep = (lambda a: None if a is None else a[o])
+    return dataclasses.replace(inst, posed_points=p, canonical_points=q, confidence=keep(inst.confidence),
+                               pixels=keep(inst.pixels), layers=keep(inst.layers))
+
+
+def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
+    """Mean vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the rest pose."""
+    ok = [r for r in rows if r["status"] == shards.STATUS_OK]
+    fitted = evaluation.pseudo_label_errors(ok, gt, rig)
+    rest = evaluation.pseudo_label_errors(
+        [dict(r, excess_rotations=[0.0] * (3 * rig.num_joints)) for r in ok], gt, rig)
+    f = np.array([e["vertex_err_cm"] for e in fitted])
+    n = np.array([e["vertex_err_cm"] for e in rest])
+    return {"fitted": len(ok), "vertex_err_cm": float(f.mean()), "rest_pose_vertex_err_cm": float(n.mean()),
+            "pct_better_than_rest": float(100 * np.mean(f < n))}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--run-name", default="demo")
+    p.add_argument("--preset", default="demo")
+    p.add_argument("--iteration", type=int, default=1, help="the iteration whose infer stage is analysed (>= 1)")
+    p.add_argument("--record-as", default="fit_oracle", help="name of the results/<name>.json to write")
+    args = p.parse_args(argv)
+    if args.iteration < 1:
+        raise SystemExit(f"--iteration: expected >= 1 (iteration 0 fits nothing), got {args.iteration}")
+    layout = resolve_run("toy", args.preset, args.run_name, {}, Ablations()).layout
+    if not layout.manifest.is_file():
+        raise FileNotFoundError(f"{layout.manifest}: run the flow with --run-name {args.run_name} first")
+    parameters = read_manifest(layout)["config"]["parameters"]
+    settings = resolve_run("toy", args.preset, args.run_name, parameters["overrides"], Ablations())
+    infer_dir = layout.stage_dir(args.iteration, "infer")
+    if not shards.list_shards(infer_dir):
+        raise FileNotFoundError(f"{infer_dir}: no inference shards; run iteration {args.iteration} first")
+    gt = evaluation.load_ground_truth(Path(settings.collection["ground_truth"]) / "ground_truth.npz")
+    rig = load_rig(settings.assets.asset)
+    r = settings.image_size
+    camera = PinholeCamera.from_fov(settings.camera_prior.fov_deg, r, r)
+    instances = [inst for i in shards.list_shards(infer_dir) for inst in instances_from_predictions(infer_dir, i,
+                                                                                                    camera)[0]
+                 if len(inst.posed_points) and inst.sample_id in gt]
+    truths = [truth_at_points(inst, gt[inst.sample_id], rig, r) for inst in instances]
+    errors = [map_errors(inst, t) for inst, t in zip(instances, truths)]
+    figures: dict[str, float] = {"images": len(instances)}
+    for key in errors[0]:
+        figures[f"median_{key}"] = round(float(np.median([e[key] for e in errors])), 3)
+    asset = FittingAsset.prepare(rig, settings.fitting, cache_dir=layout.storage_root / "_cache" / "geodesics")
+    for name, (true_p, true_q) in VERSIONS.items():
+        result = fit_batch(asset, [substitute(i, t, true_p, true_q) for i, t in zip(instances, truths)],
+                           settings.fitting)
+        quality = pose_quality(fit_rows(result), gt, rig)
+        figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
+        figures[f"pct_better_than_rest_{name}"] = round(quality["pct_better_than_rest"], 1)
+        figures["rest_pose_vertex_err_cm"] = round(quality["rest_pose_vertex_err_cm"], 2)
+        print(f"{name:>13}: fits {quality['vertex_err_cm']:.2f} cm from the truth (rest pose "
+              f"{quality['rest_pose_vertex_err_cm']:.2f} cm), better than the rest pose for "
+              f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images", flush=True)
+    print("median per-image errors of the predictions: " + ", ".join(
+        f"{k[len('median_'):]} {v}" for k, v in figures.items() if k.startswith("median_")))
+    record(args.record_as, figures,
+           notes=(f"toy, {args.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
+                  f"predictions iteration {args.iteration} fitted ({settings.train.steps} training steps per model, "
+                  f"{r}x{r}); fits with the run's fitting settings on the predicted maps and with P, Q or both "
+                  "replaced by the ray-cast truth at the same pixels and layers"))
+    return figures
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,86 @@
+"""The pseudo-label diagnosis of ``benchmarks/bench_fit_oracle.py``: ground truth read back at the predicted points,
+map errors in centimetres, substitution, and the fit-vs-rest-pose comparison."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+import bench_fit_oracle as B  # noqa: E402
+
+from bat3r_core.cameras import PinholeCamera, look_at  # noqa: E402
+from bat3r_core.fitting.fit import PointCloudInstance  # noqa: E402
+from bat3r_core.pointmaps import dual_point_maps  # noqa: E402
+from bat3r_core.poses import sample_toy_natural_poses  # noqa: E402
+from bat3r_core.skinning import skin  # noqa: E402
+
+RES = 32
+
+
+@pytest.fixture(scope="module")
+def scene(toy_rig):
+    """A posed toy seen from an off-centre crop camera, with its true maps as a 'prediction'."""
+    theta, _ = sample_toy_natural_poses(1, seed=7, families=("gallop",))
+    verts = skin(toy_rig.tensors(dtype=torch.float64), torch.as_tensor(theta)).vertices[0].numpy()
+    R, t = look_at(np.array([3.5, 0.6, 1.0]), verts.mean(0), np.array([0.0, 1.0, 0.0]))
+    cam = PinholeCamera.from_fov(40.0, RES, RES, R=R, t=t)
+    cam = PinholeCamera(fx=cam.fx, fy=cam.fy, cx=cam.cx - 2.0, cy=cam.cy + 1.5, width=RES, height=RES, R=R, t=t)
+    gt = {"K": np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1.0]]), "camera_rotation": R,
+          "camera_translation": t, "posed_vertices": verts, "excess_rotations": theta[0]}
+    maps = dual_point_maps(verts, toy_rig.rest_vertices, toy_rig.faces, cam, 4, "world", nthreads=1)
+    v, u, k = np.nonzero(maps.occupancy)
+    inst = PointCloudInstance(sample_id="s0", posed_points=maps.P[v, u, k] - [0.0, 0.0, maps.object_depth],
+                              canonical_points=maps.Q[v, u, k].astype(np.float64),
+                              pixels=np.stack([u + 0.5, v + 0.5], 1), layers=k, confidence=np.full(len(v), 5.0))
+    return inst, gt
+
+
+def test_truth_is_read_back_at_the_predicted_pixels_and_layers(scene, toy_rig):
+    inst, gt = scene
+    truth = B.truth_at_points(inst, gt, toy_rig, RES)
+    assert truth.occupied.all()
+    np.testing.assert_allclose(truth.P, inst.posed_points, atol=1e-5)
+    np.testing.assert_allclose(truth.Q, inst.canonical_points, atol=1e-5)
+    e = B.map_errors(inst, truth)
+    assert e["q_rms_cm"] < 1e-3 and max(e["p_rms_x_cm"], e["p_rms_y_cm"], e["p_rms_z_cm"]) < 1e-3
+
+
+def test_map_errors_in_cm_per_axis_and_substitution(scene, toy_rig):
+    inst, gt = scene
+    truth = B.truth_at_points(inst, gt, toy_rig, RES)
+    rng = np.random.default_rng(0)
+    depth_noise = rng.normal(0.0, 0.2, len(inst.posed_points))
+    bad = PointCloudInstance(**{**inst.__dict__, "canonical_points": inst.canonical_points + [0.1, 0.0, 0.0],
+                                "posed_points": inst.posed_points + np.c_[0 * depth_noise, 0 * depth_noise,
+                                                                          depth_noise] + [0.0, 0.0, 0.7]})
+    e = B.map_errors(bad, truth)
+    assert e["q_rms_cm"] == pytest.approx(10.0, abs=1e-3) and e["q_median_cm"] == pytest.approx(10.0, abs=1e-3)
+    assert e["p_rms_x_cm"] < 1e-3 and e["p_rms_y_cm"] < 1e-3  # a translation is not an error
+    assert e["p_rms_z_cm"] == pytest.approx(100 * depth_noise.std(), rel=1e-3)
+    # a point off the true surface takes no part
+    off = PointCloudInstance(**{**inst.__dict__, "layers": np.full(len(inst.layers), 3)})
+    t_off = B.truth_at_points(off, gt, toy_rig, RES)
+    assert 0 < t_off.occupied.sum() < len(inst.layers)
+    s = B.substitute(off, t_off, true_p=False, true_q=True)
+    assert len(s.canonical_points) == len(s.pixels) == len(s.confidence) == t_off.occupied.sum()
+    fixed = B.substitute(bad, truth, true_p=True, true_q=True)
+    np.testing.assert_allclose(fixed.canonical_points, inst.canonical_points, atol=1e-5)
+    p = fixed.posed_points - fixed.posed_points.mean(0)
+    np.testing.assert_allclose(p, inst.posed_points - inst.posed_points.mean(0), atol=1e-5)
+    np.testing.assert_allclose(B.substitute(bad, truth, True, False).canonical_points, bad.canonical_points)
+
+
+def test_pose_quality_against_the_rest_pose(scene, toy_rig):
+    _, gt = scene
+    theta = gt["excess_rotations"]
+    wrong = theta.copy()
+    wrong[toy_rig.joint_index("forearm.L")] += [1.5, 0.0, 0.0]
+    rows = [{"sample_id": "s0", "status": "ok", "excess_rotations": theta.ravel().tolist()},
+            {"sample_id": "s1", "status": "ok", "excess_rotations": (3 * wrong).ravel().tolist()},
+            {"sample_id": "s2", "status": "too_few_points", "excess_rotations": []}]
+    q = B.pose_quality(rows, {"s0": gt, "s1": gt, "s2": gt}, toy_rig)
+    assert q["fitted"] == 2 and q["rest_pose_vertex_err_cm"] > 1.0
+    assert q["pct_better_than_rest"] == 50.0  # the truth beats the rest pose, a wild pose does not
