@@ -3,7 +3,7 @@
 For a finished toy run (``runs/toy/<run name>``; the overrides its manifest records apply), takes the predictions
 on the collection that iteration ``--iteration`` fitted (by default 1: Φ₀'s predictions) and, for every predicted
 point, the true canonical point Q* and posed point P* of the same pixel and layer, ray-cast from the hidden
-ground truth (pose, camera) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
+ground truth (pose, camera, and the collection's crop of the image) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
 
 * the per-image RMS error of the predicted Q and of the predicted P (centred, per camera axis; z is depth);
 * the pose error of fits (``bat3r_core.evaluation.pseudo_label_errors``: mean vertex error after rigid alignment)
@@ -38,6 +38,7 @@ from bat3r_core.cameras import PinholeCamera  # noqa: E402
 from bat3r_core.fitting.fit import FittingAsset, PointCloudInstance, fit_batch  # noqa: E402
 from bat3r_core.fitting.io import fit_rows, instances_from_predictions  # noqa: E402
 from bat3r_core.pointmaps import dual_point_maps  # noqa: E402
+from bat3r_core.predictor.collection import CropTransform, crop_transform_from_row  # noqa: E402
 from bat3r_core.rig_io import load_rig  # noqa: E402
 from bat3r_core.runs import read_manifest  # noqa: E402
 from flows._settings import Ablations, resolve_run  # noqa: E402
@@ -54,9 +55,16 @@ class Truth:
     Q: np.ndarray  # (N, 3) canonical frame
 
 
-def truth_at_points(inst: PointCloudInstance, gt: dict, rig, resolution: int) -> Truth:
-    """Ray-cast the true posed mesh of ``inst`` with its true camera and read the maps at its points."""
+def truth_at_points(inst: PointCloudInstance, gt: dict, rig, resolution: int, crop: CropTransform | None = None
+                    ) -> Truth:
+    """Ray-cast the true posed mesh of ``inst`` with its true camera and read the maps at its points.
+
+    ``crop``: the collection's crop of the image (the model sees crops; the ground-truth intrinsics are the original
+    image's); None when the image is the crop.
+    """
     k = np.asarray(gt["K"], np.float64)
+    if crop is not None:
+        k = crop.intrinsics(k)
     camera = PinholeCamera(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=resolution, height=resolution,
                            R=np.asarray(gt["camera_rotation"]), t=np.asarray(gt["camera_translation"]))
     maps = dual_point_maps(gt["posed_vertices"], rig.rest_vertices, rig.faces, camera, 4, "world", nthreads=1)
@@ -127,10 +135,12 @@ def main(argv: list[str] | None = None) -> dict:
     rig = load_rig(settings.assets.asset)
     r = settings.image_size
     camera = PinholeCamera.from_fov(settings.camera_prior.fov_deg, r, r)
+    crops = {row["sample_id"]: crop_transform_from_row(row)
+             for row in shards.read_table(layout.run_stage_dir("collection")).to_pylist() if row["status"] == "ok"}
     instances = [inst for i in shards.list_shards(infer_dir) for inst in instances_from_predictions(infer_dir, i,
                                                                                                     camera)[0]
-                 if len(inst.posed_points) and inst.sample_id in gt]
-    truths = [truth_at_points(inst, gt[inst.sample_id], rig, r) for inst in instances]
+                 if len(inst.posed_points) and inst.sample_id in gt and inst.sample_id in crops]
+    truths = [truth_at_points(inst, gt[inst.sample_id], rig, r, crops[inst.sample_id]) for inst in instances]
     errors = [map_errors(inst, t) for inst, t in zip(instances, truths)]
     figures: dict[str, float] = {"images": len(instances)}
     for key in errors[0]:

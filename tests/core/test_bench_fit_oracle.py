@@ -48,6 +48,26 @@ def test_truth_is_read_back_at_the_predicted_pixels_and_layers(scene, toy_rig):
     assert e["q_rms_cm"] < 1e-3 and max(e["p_rms_x_cm"], e["p_rms_y_cm"], e["p_rms_z_cm"]) < 1e-3
 
 
+def test_truth_through_the_collection_crop(toy_rig, scene):
+    """The model sees a crop of the photo: the truth is ray-cast with the crop's intrinsics, not the photo's."""
+    from bat3r_core.predictor.collection import CropTransform
+
+    _, gt = scene
+    crop = CropTransform(x0=-3.0, y0=2.0, size=36.0, resolution=RES)
+    K = crop.intrinsics(gt["K"])
+    cam = PinholeCamera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=RES, height=RES,
+                        R=gt["camera_rotation"], t=gt["camera_translation"])
+    maps = dual_point_maps(gt["posed_vertices"], toy_rig.rest_vertices, toy_rig.faces, cam, 4, "world", nthreads=1)
+    v, u, k = np.nonzero(maps.occupancy)
+    inst = PointCloudInstance(sample_id="s0", posed_points=maps.P[v, u, k] - [0.0, 0.0, maps.object_depth],
+                              canonical_points=maps.Q[v, u, k].astype(np.float64),
+                              pixels=np.stack([u + 0.5, v + 0.5], 1), layers=k)
+    truth = B.truth_at_points(inst, gt, toy_rig, RES, crop)
+    assert truth.occupied.all() and B.map_errors(inst, truth)["q_rms_cm"] < 1e-3
+    uncropped = B.truth_at_points(inst, gt, toy_rig, RES)  # the photo's intrinsics: misaligned
+    assert uncropped.occupied.mean() < 0.95 or B.map_errors(inst, uncropped)["q_rms_cm"] > 2.0
+
+
 def test_map_errors_in_cm_per_axis_and_substitution(scene, toy_rig):
     inst, gt = scene
     truth = B.truth_at_points(inst, gt, toy_rig, RES)
