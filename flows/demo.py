@@ -68,7 +68,8 @@ def main(argv: list[str] | None = None) -> int:
         record("demo", figures,
                notes=(f"make demo: bootstrap on the toy category, demo preset, {os.cpu_count()} CPU cores; mCD on the "
                       f"toy test split; the goal mcd_last <= 0.75 x mcd_canonical is {verdict}. "
-                      "benchmarks/bench_demo_control.py compares the loop with Φ₀ trained on for the same compute."))
+                      "benchmarks/bench_demo_control.py compares the loop with Φ₀ trained on for the same compute on "
+                      "canonical renders (control) and on the collection with its true labels (oracle)."))
     return 0
 
 
