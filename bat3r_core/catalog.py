@@ -157,6 +157,8 @@ class RunPreset:
         train: training settings (checked against the predictor's TrainConfig).
         fitting: overrides of the fitting preset (dotted keys; e.g. ``steps``).
         features: feature extractor name (``rgb`` on CPU, ``dinov2`` with weights).
+        name: the preset's key under ``runs`` (set by the loader; kept by overrides, so that the stage configs
+            built from an overridden preset name it in their errors).
     """
 
     iterations: int
@@ -170,6 +172,7 @@ class RunPreset:
     fitting: dict[str, Any] = field(default_factory=dict)
     features: str = "rgb"
     views_per_fit_max: int = 2
+    name: str = ""
 
 
 @dataclass(frozen=True)
@@ -267,12 +270,13 @@ class Catalog:
 
         preset = self.run_preset(run)
         data = {"resolution": preset.image_size, "layers": self.layers, "feature": preset.features, **preset.model}
-        return _stage(ModelConfig, data, f"runs.{_label(run)}.model")
+        return _stage(ModelConfig, data, f"runs.{preset.name}.model")
 
     def train_config(self, run: "str | RunPreset"):
         from .predictor.config import TrainConfig
 
-        return _stage(TrainConfig, self.run_preset(run).train, f"runs.{_label(run)}.train")
+        preset = self.run_preset(run)
+        return _stage(TrainConfig, preset.train, f"runs.{preset.name}.train")
 
     def feature_config(self, run: str | None = None, extractor: str | None = None):
         """``FeatureConfig`` from the ``features`` section; the extractor is ``extractor``, else the run preset's."""
@@ -293,7 +297,7 @@ class Catalog:
 
         preset = self.run_preset(run)
         data = {"resolution": preset.image_size, **preset.render}
-        return _stage(RenderConfig, data, f"runs.{_label(run)}.render")
+        return _stage(RenderConfig, data, f"runs.{preset.name}.render")
 
     def validate_stage_sections(self) -> None:
         """Check every stage section against its config class (raises ConfigError naming the key path)."""
@@ -307,11 +311,6 @@ class Catalog:
             self.train_config(run)
             self.render_config(run)
             self.feature_config(run)
-
-
-def _label(run: "str | RunPreset") -> str:
-    """How a run preset is named in error messages (an overridden preset object has no name of its own)."""
-    return run if isinstance(run, str) else "<preset with overrides>"
 
 
 def _stage(cls, data: dict[str, Any], path: str):
@@ -362,7 +361,8 @@ def load_catalog(path: str | os.PathLike | None = None, validate_stages: bool = 
     runs_raw = raw["runs"]
     if not isinstance(runs_raw, dict) or not runs_raw:
         raise ConfigError(f"runs: expected a non-empty mapping of run presets, got {runs_raw!r}")
-    runs = {name: from_mapping(RunPreset, spec, f"runs.{name}") for name, spec in runs_raw.items()}
+    runs = {name: dataclasses.replace(from_mapping(RunPreset, spec, f"runs.{name}"), name=name)
+            for name, spec in runs_raw.items()}
     cats_raw = raw["categories"]
     if not isinstance(cats_raw, dict) or not cats_raw:
         raise ConfigError(f"categories: expected a non-empty mapping of categories, got {cats_raw!r}")

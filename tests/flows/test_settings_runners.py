@@ -49,6 +49,7 @@ def test_overrides_reach_their_stage_configs(catalog, tmp_path):
     ({"train.steps": "many"}, r"steps: expected an integer"),
     ({"shard_size": 0}, r"shard_size: must be >= 1, got 0"),
     ({"max_failed_fraction": 2}, r"max_failed_fraction: must be in \[0, 1\], got 2"),
+    ({"run.model": {"depth": "deep"}}, r"runs\.tiny\.model\.depth: expected an integer"),  # the preset keeps its name
 ])
 def test_bad_overrides_name_the_key(catalog, overrides, match):
     from flows._settings import resolve_run
