@@ -24,15 +24,19 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from bat3r_core import shards
-from bat3r_core.shards import atomic_write
+from bat3r_core.cameras import PinholeCamera
 from bat3r_core.metrics import SampleMetrics
+from bat3r_core.shards import atomic_write
+
+if TYPE_CHECKING:
+    from bat3r_core.predictor.collection import CropTransform
 
 __all__ = [
     "SAMPLE_SCHEMA",
@@ -49,6 +53,8 @@ __all__ = [
     "upsert_metrics",
     "read_metrics",
     "evaluate_run",
+    "load_ground_truth",
+    "ground_truth_camera",
 ]
 
 FAILURE_THRESHOLD_CM = 5.0
@@ -375,6 +381,16 @@ def load_ground_truth(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray
             raise ValueError(f"ground truth {path} lacks array(s) {missing}")
         data = {k: z[k] for k in ("sample_id", *keys)}
     return {str(sid): {k: data[k][i] for k in keys} for i, sid in enumerate(data["sample_id"])}
+
+
+def ground_truth_camera(truth: Mapping[str, np.ndarray], crop: CropTransform) -> PinholeCamera:
+    """The true camera of one generated image (a :func:`load_ground_truth` entry) as the model sees it: through
+    the collection's crop ``crop`` (a :class:`~bat3r_core.predictor.collection.CropTransform`; intrinsics
+    ``crop.intrinsics(K)``, ``crop.resolution`` pixels square), world → camera as in the ground truth."""
+    k = crop.intrinsics(np.asarray(truth["K"], np.float64))
+    return PinholeCamera(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=crop.resolution,
+                         height=crop.resolution, R=np.asarray(truth["camera_rotation"], np.float64),
+                         t=np.asarray(truth["camera_translation"], np.float64))
 
 
 def evaluate_prediction_shard(predictions_dir: str | os.PathLike, index: int, ground_truth: Mapping[str, Mapping],

@@ -41,8 +41,7 @@ from bat3r_core.predictor.features import make_feature_fn  # noqa: E402
 from bat3r_core.predictor.infer import predict_collection  # noqa: E402
 from bat3r_core.predictor.train import Trainer  # noqa: E402
 from bat3r_core.rig_io import load_rig  # noqa: E402
-from bat3r_core.runs import read_manifest  # noqa: E402
-from flows._settings import Ablations, resolve_run  # noqa: E402
+from flows._settings import recorded_run  # noqa: E402
 
 
 def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: int) -> dict:
@@ -58,11 +57,11 @@ def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: in
     return evaluation.aggregate(shards.read_table(out / "evaluate"))[0]
 
 
-def true_fit_rows(collection_rows: list[dict], ground_truth: dict, resolution: int) -> list[dict]:
+def true_fit_rows(collection_rows: list[dict], ground_truth: dict) -> list[dict]:
     """Fit rows (the fit stage's columns that ``raw_image_shard`` reads) carrying the hidden truth of each ok
     collection image that has one: its pose θ and the camera taking the skinned rig (no global similarity) to the
-    pixels of the collection's crop — the ground truth's global similarity folded into the camera (the toy's global
-    scale is 1)."""
+    pixels of the collection's crop (``evaluation.ground_truth_camera``) — the ground truth's global similarity
+    folded into the camera (the toy's global scale is 1)."""
     rows = []
     for row in collection_rows:
         gt = ground_truth.get(row["sample_id"])
@@ -71,14 +70,13 @@ def true_fit_rows(collection_rows: list[dict], ground_truth: dict, resolution: i
         if abs(float(gt["global_scale"]) - 1.0) > 1e-9:
             raise ValueError(f"{row['sample_id']}: global scale {float(gt['global_scale'])} cannot be folded into a "
                              "camera; the oracle needs unit-scale ground truth")
-        k = crop_transform_from_row(row).intrinsics(np.asarray(gt["K"], np.float64))
-        rc, tc = np.asarray(gt["camera_rotation"], np.float64), np.asarray(gt["camera_translation"], np.float64)
+        cam = evaluation.ground_truth_camera(gt, crop_transform_from_row(row))
         rg, tg = np.asarray(gt["global_rotation"], np.float64), np.asarray(gt["global_translation"], np.float64)
         rows.append({"sample_id": row["sample_id"], "status": shards.STATUS_OK, "reason": "",
                      "excess_rotations": np.asarray(gt["excess_rotations"], np.float64).ravel().tolist(),
-                     "fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2]),
-                     "width": int(resolution), "height": int(resolution),
-                     "camera_rotation": (rc @ rg).ravel().tolist(), "camera_translation": (rc @ tg + tc).tolist()})
+                     "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width,
+                     "height": cam.height, "camera_rotation": (cam.R @ rg).ravel().tolist(),
+                     "camera_translation": (cam.R @ tg + cam.t).tolist()})
     return rows
 
 
@@ -88,7 +86,7 @@ def _oracle_dataset(settings, rig, out: Path) -> Path:
     gt = evaluation.load_ground_truth(Path(settings.collection["ground_truth"]) / "ground_truth.npz")
     for i in shards.list_shards(collection):
         rows, _ = shards.read_shard(collection, i, with_arrays=False)
-        shards.write_shard(out / "true_fit", i, true_fit_rows(rows.to_pylist(), gt, settings.image_size))
+        shards.write_shard(out / "true_fit", i, true_fit_rows(rows.to_pylist(), gt))
         raw_image_shard(rig, out / "true_fit", collection, i, out / "data", num_layers=settings.model.layers)
     return out / "data"
 
@@ -110,17 +108,11 @@ def _rounds(settings, data: Path, out: Path, iterations: int, run_seed: int) -> 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run-name", default="demo")
-    p.add_argument("--preset", default="demo")
     p.add_argument("--record-as", default="demo_control", help="name of the results/<name>.json to write")
     p.add_argument("--no-oracle", action="store_true", help="skip the perfect-pseudo-label reference")
     args = p.parse_args(argv)
-    layout = resolve_run("toy", args.preset, args.run_name, {}, Ablations()).layout
-    if not layout.manifest.is_file():
-        raise FileNotFoundError(f"{layout.manifest}: run `make demo` (or flows/demo.py --run-name {args.run_name}) "
-                                "first")
-    parameters = read_manifest(layout)["config"]["parameters"]  # the run's own settings and seed
-    overrides, run_seed = parameters["overrides"], int(parameters["seed"])
-    settings = resolve_run("toy", args.preset, args.run_name, overrides, Ablations())
+    settings, parameters = recorded_run("toy", args.run_name)  # the run's own settings and seed
+    layout, overrides, run_seed = settings.layout, parameters["overrides"], int(parameters["seed"])
     if not layout.metrics.is_file():
         raise FileNotFoundError(f"{layout.metrics}: the run has no metrics yet; finish it first")
     loop = {int(r["iteration"]): float(r["mcd_cm"]) for r in evaluation.read_metrics(layout.root).to_pylist()
@@ -143,7 +135,7 @@ def main(argv: list[str] | None = None) -> dict:
     for name in ("loop", *references):
         figures[f"ratio_{name}"] = round(figures[f"mcd_{name}_cm_iter{iterations}"] / loop[0], 3)
     record(args.record_as, figures,
-           notes=(f"toy, {args.preset} preset, run {args.run_name!r} (overrides {overrides}): the loop's test mCD "
+           notes=(f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {overrides}): the loop's test mCD "
                   f"per iteration next to Φ₀ trained on for the same number of warm-started rounds "
                   f"({settings.train.steps} steps each) on its canonical renders only (control)"
                   + ("" if args.no_oracle else " and on the collection's images with their true labels (oracle)")

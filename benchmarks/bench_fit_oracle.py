@@ -40,8 +40,7 @@ from bat3r_core.fitting.io import fit_rows, instances_from_predictions  # noqa: 
 from bat3r_core.pointmaps import dual_point_maps  # noqa: E402
 from bat3r_core.predictor.collection import CropTransform, crop_transform_from_row  # noqa: E402
 from bat3r_core.rig_io import load_rig  # noqa: E402
-from bat3r_core.runs import read_manifest  # noqa: E402
-from flows._settings import Ablations, resolve_run  # noqa: E402
+from flows._settings import recorded_run  # noqa: E402
 
 VERSIONS = {"predicted": (False, False), "true_P": (True, False), "true_Q": (False, True), "true_P_and_Q": (True, True)}
 
@@ -60,13 +59,10 @@ def truth_at_points(inst: PointCloudInstance, gt: dict, rig, resolution: int, cr
     """Ray-cast the true posed mesh of ``inst`` with its true camera and read the maps at its points.
 
     ``crop``: the collection's crop of the image (the model sees crops; the ground-truth intrinsics are the original
-    image's); None when the image is the crop.
+    image's); None when the image is the crop (``resolution`` pixels square).
     """
-    k = np.asarray(gt["K"], np.float64)
-    if crop is not None:
-        k = crop.intrinsics(k)
-    camera = PinholeCamera(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=resolution, height=resolution,
-                           R=np.asarray(gt["camera_rotation"]), t=np.asarray(gt["camera_translation"]))
+    crop = crop or CropTransform(0.0, 0.0, float(resolution), resolution)
+    camera = evaluation.ground_truth_camera(gt, crop)
     maps = dual_point_maps(gt["posed_vertices"], rig.rest_vertices, rig.faces, camera, 4, "world", nthreads=1)
     u = np.clip(np.floor(inst.pixels[:, 0]).astype(int), 0, resolution - 1)
     v = np.clip(np.floor(inst.pixels[:, 1]).astype(int), 0, resolution - 1)
@@ -117,17 +113,13 @@ def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run-name", default="demo")
-    p.add_argument("--preset", default="demo")
     p.add_argument("--iteration", type=int, default=1, help="the iteration whose infer stage is analysed (>= 1)")
     p.add_argument("--record-as", default="fit_oracle", help="name of the results/<name>.json to write")
     args = p.parse_args(argv)
     if args.iteration < 1:
         raise SystemExit(f"--iteration: expected >= 1 (iteration 0 fits nothing), got {args.iteration}")
-    layout = resolve_run("toy", args.preset, args.run_name, {}, Ablations()).layout
-    if not layout.manifest.is_file():
-        raise FileNotFoundError(f"{layout.manifest}: run the flow with --run-name {args.run_name} first")
-    parameters = read_manifest(layout)["config"]["parameters"]
-    settings = resolve_run("toy", args.preset, args.run_name, parameters["overrides"], Ablations())
+    settings, parameters = recorded_run("toy", args.run_name)
+    layout = settings.layout
     infer_dir = layout.stage_dir(args.iteration, "infer")
     if not shards.list_shards(infer_dir):
         raise FileNotFoundError(f"{infer_dir}: no inference shards; run iteration {args.iteration} first")
@@ -159,7 +151,7 @@ def main(argv: list[str] | None = None) -> dict:
     print("median per-image errors of the predictions: " + ", ".join(
         f"{k[len('median_'):]} {v}" for k, v in figures.items() if k.startswith("median_")))
     record(args.record_as, figures,
-           notes=(f"toy, {args.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
+           notes=(f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
                   f"predictions iteration {args.iteration} fitted ({settings.train.steps} training steps per model, "
                   f"{r}x{r}); fits with the run's fitting settings on the predicted maps and with P, Q or both "
                   "replaced by the ray-cast truth at the same pixels and layers"))

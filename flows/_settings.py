@@ -22,10 +22,10 @@ from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.features import FeatureConfig
 from bat3r_core.render.config import RenderConfig, SceneAssets
-from bat3r_core.runs import RunLayout
+from bat3r_core.runs import RunLayout, read_manifest
 from bat3r_core.viewpoints import AnglePrior, CameraPriorConfig, ViewTypePrior
 
-__all__ = ["Ablations", "RunSettings", "resolve_run"]
+__all__ = ["Ablations", "RunSettings", "resolve_run", "recorded_run"]
 
 _SECTIONS = ("render", "model", "train", "features", "fitting", "camera_prior", "run")
 
@@ -183,3 +183,23 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
         collection=_collection(cat, cat.collection, run.collection_size, run.image_size),
         test_split=_collection(cat, cat.test_split, run.test_size, run.image_size),
         ablations=ablations, **configs)
+
+
+def recorded_run(category: str, run_name: str, catalog: Catalog | None = None
+                 ) -> tuple[RunSettings, dict[str, Any]]:
+    """The settings an existing run was made with, re-resolved from its ``manifest.json`` (preset, overrides,
+    ablation switches, failed-fraction limit), and the run parameters the manifest records (``iterations,
+    task_runner, seed, overrides``) — for tools that analyse a finished run (e.g. the demo benchmarks).
+
+    Raises FileNotFoundError when the run has no manifest.
+    """
+    catalog = catalog or load_catalog()
+    layout = RunLayout(catalog.storage(), category, run_name)
+    config = read_manifest(layout).get("config")
+    if not config:
+        raise FileNotFoundError(f"{layout.manifest}: no such run (run the bootstrap flow with --run-name "
+                                f"{run_name} first)")
+    parameters = config["parameters"]
+    settings = resolve_run(category, config["preset"], run_name, parameters["overrides"], config["ablations"],
+                           catalog=catalog, max_failed_fraction=config["max_failed_fraction"])
+    return settings, parameters

@@ -39,7 +39,7 @@ def test_true_fit_rows_put_the_skinned_rig_on_the_crop_pixels_of_the_photo(toy_r
             {"sample_id": "b", "status": "unreadable", "crop_x0": 0.0, "crop_y0": 0.0, "crop_size": 0.0,
              "resolution": 64},
             {"sample_id": "c", "status": "ok", "crop_x0": 0.0, "crop_y0": 0.0, "crop_size": 64.0, "resolution": 64}]
-    rows = B.true_fit_rows(coll, {"a": gt, "b": gt}, 64)  # b failed in the collection, c has no truth
+    rows = B.true_fit_rows(coll, {"a": gt, "b": gt})  # b failed in the collection, c has no truth
     assert [r["sample_id"] for r in rows] == ["a"]
     row = rows[0]
     np.testing.assert_allclose(np.reshape(row["excess_rotations"], (-1, 3)), theta)
@@ -48,4 +48,4 @@ def test_true_fit_rows_put_the_skinned_rig_on_the_crop_pixels_of_the_photo(toy_r
     uv_photo, _ = photo_cam.project(gt["posed_vertices"])
     np.testing.assert_allclose(uv_fit, crop.apply(uv_photo), atol=1e-6)
     with pytest.raises(ValueError, match="global scale 1.3"):
-        B.true_fit_rows(coll[:1], {"a": {**gt, "global_scale": 1.3}}, 64)
+        B.true_fit_rows(coll[:1], {"a": {**gt, "global_scale": 1.3}})

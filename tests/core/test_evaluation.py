@@ -142,3 +142,20 @@ def test_pseudo_label_errors_zero_for_the_true_pose_and_blind_to_global_placemen
     assert path.name == E.PSEUDO_LABEL_FILE and sorted(r["sample_id"] for r in table) == ["s0", "s1", "s2"]
     assert summary["n"] == 3
     assert summary["vertex_err_cm"] == pytest.approx(out["s2"]["vertex_err_cm"] / 3, rel=1e-9, abs=1e-9)
+
+
+def test_ground_truth_camera_sees_the_photo_through_the_crop():
+    from bat3r_core.cameras import PinholeCamera, look_at
+    from bat3r_core.predictor.collection import CropTransform
+
+    R, t = look_at(np.array([2.0, 1.0, 3.0]), np.zeros(3), np.array([0.0, 1.0, 0.0]))
+    photo = PinholeCamera.from_fov(40.0, 120, 90, R=R, t=t, cx=57.0, cy=48.0)
+    truth = {"K": photo.K, "camera_rotation": R, "camera_translation": t}
+    crop = CropTransform(x0=10.0, y0=-5.0, size=80.0, resolution=64)
+    cam = E.ground_truth_camera(truth, crop)
+    points = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 3))
+    uv_crop, depth = cam.project(points)
+    uv_photo, depth_photo = photo.project(points)
+    np.testing.assert_allclose(uv_crop, crop.apply(uv_photo), atol=1e-9)
+    np.testing.assert_allclose(depth, depth_photo)
+    assert (cam.width, cam.height) == (64, 64)

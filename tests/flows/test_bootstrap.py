@@ -62,6 +62,14 @@ def test_canonical_initialisation_writes_the_run_folder(first_run, catalog):
     manifest = read_manifest(layout)
     assert manifest["config"]["canonical_samples"] == 8 and manifest["config"]["train"]["steps"] == 4
     assert set(manifest["stage_code_versions"]) >= {"plan", "render", "features", "train", "evaluate"}
+    # tools analysing a finished run get back exactly the settings it ran with, from its manifest
+    from flows._settings import recorded_run
+
+    settings, parameters = recorded_run("toy", "t1")
+    assert json.loads(json.dumps({**settings.to_mapping(), "parameters": parameters})) == manifest["config"]
+    assert parameters["overrides"] == TINY and settings.train.steps == 4
+    with pytest.raises(FileNotFoundError, match="no such run"):
+        recorded_run("toy", "never-ran")
     assert layout.metrics.is_file() and layout.report.is_file()
     init = result["iterations"][0]
     assert init["states"]["render"] == ["Completed", "Completed"]
