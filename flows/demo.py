@@ -16,6 +16,7 @@ if __package__ in (None, ""):
     sys.path.insert(0, str(ROOT))
 
 from flows._artifacts import METRIC_COLUMNS  # noqa: E402
+from flows._settings import resolve_run  # noqa: E402
 from flows.bootstrap import bootstrap  # noqa: E402
 
 
@@ -38,6 +39,20 @@ def demo_figures(rows: list[dict], minutes: float) -> tuple[dict[str, float], st
     return figures, ("met" if ratio <= 0.75 else "NOT met")
 
 
+def record_refusal(preset: str, no_record: bool, resumed: bool) -> str | None:
+    """Why ``benchmarks/results/demo.json`` must not be written for this run, or None when it may be: only a
+    ``demo``-preset run that started from an empty run folder measures the loop's duration (a rerun of an existing
+    run reuses its cached stages and takes a fraction of it)."""
+    if no_record:
+        return "--no-record"
+    if preset != "demo":
+        return f"preset {preset!r} (only the demo preset is recorded)"
+    if resumed:
+        return ("the run folder existed before this run, so cached stages were reused and the minutes are not the "
+                "loop's duration; remove it (or pick another --run-name) to measure")
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     import argparse
 
@@ -46,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run-name", default="demo")
     p.add_argument("--no-record", action="store_true", help="do not write benchmarks/results/demo.json")
     args = p.parse_args(argv)
+    resumed = resolve_run("toy", args.preset, args.run_name).layout.manifest.is_file()
     t0 = time.perf_counter()
     result = bootstrap(category="toy", preset=args.preset, run_name=args.run_name)
     minutes = (time.perf_counter() - t0) / 60.0
@@ -61,7 +77,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{minutes:.1f} min; mCD canonical {figures['mcd_canonical_cm']:.2f} cm -> iteration "
           f"{figures['iterations']} {figures['mcd_last_cm']:.2f} cm (ratio {figures['mcd_ratio']:.2f}; the method's "
           f"claim at this scale: <= 0.75, {verdict})")
-    if not args.no_record and args.preset == "demo":
+    refusal = record_refusal(args.preset, args.no_record, resumed)
+    if refusal:
+        print(f"benchmarks/results/demo.json not written: {refusal}")
+    else:
         sys.path.insert(0, str(ROOT / "benchmarks"))
         from _results import record
 

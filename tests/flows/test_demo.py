@@ -17,3 +17,12 @@ def test_figures_and_verdict_follow_the_ratio_of_last_to_canonical_mcd():
     figures, verdict = demo_figures([_row(0, 12.0, 30.0), _row(1, 9.0, float("nan"))], 5.0)
     assert verdict == "met" and figures["mcd_ratio"] == 0.75  # the goal is <= 0.75: the boundary passes
     assert "rot_err_last_deg" not in figures and not any(math.isnan(v) for v in figures.values())
+
+
+def test_only_a_demo_run_from_an_empty_folder_is_recorded():
+    from flows.demo import record_refusal
+
+    assert record_refusal("demo", no_record=False, resumed=False) is None
+    assert "cached stages were reused" in record_refusal("demo", no_record=False, resumed=True)
+    assert "only the demo preset" in record_refusal("tiny", no_record=False, resumed=False)
+    assert record_refusal("demo", no_record=True, resumed=False) == "--no-record"
