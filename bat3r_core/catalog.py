@@ -78,8 +78,12 @@ class Category:
     Attributes:
         name: category name (the key in ``categories``).
         asset: rigged canonical mesh (.glb/.gltf/.fbx/.blend) or ``generated:toy``.
-        body_frame: joints of the body-centric frame.
-        textures: texture image files (or ``procedural:<coat>`` for the toy's procedural coats).
+        body_frame: joints of the body-centric frame, or ``"auto"`` to read them off the skeleton
+            (:func:`bat3r_core.assets.propose_body_frame`; ``bat3r asset check`` prints the proposal).
+        textures: texture image files (or ``procedural:<coat>`` for the toy's procedural coats); empty: the asset's
+            own base-colour texture.
+        asset_scale: file units → metres (0.01 for an asset in centimetres).
+        up_axis: the asset's up axis (``+Y`` for glTF; ``+Z`` for many FBX/Blender-exported files).
         environment_maps: HDR/EXR files; empty means a procedural sky.
         collection: the training image collection.
         test_split: the held-out test collection with ground truth (optional).
@@ -89,14 +93,22 @@ class Category:
 
     name: str
     asset: str
-    body_frame: BodyFrameJoints
+    body_frame: BodyFrameJoints | Literal["auto"]
     collection: CollectionSpec
     fitting: FittingChoice
     textures: tuple[str, ...] = ()
     environment_maps: tuple[str, ...] = ()
     test_split: CollectionSpec | None = None
     camera_prior: dict[str, Any] | None = None
+    asset_scale: float = 1.0
+    up_axis: Literal["+X", "-X", "+Y", "-Y", "+Z", "-Z"] = "+Y"
     catalog_dir: str = ""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.asset_scale, bool) or not isinstance(self.asset_scale, (int, float)) \
+                or not self.asset_scale > 0:
+            raise ConfigError(f"categories.{self.name}.asset_scale: expected a positive number (file units -> "
+                              f"metres, e.g. 0.01 for centimetres), got {self.asset_scale!r}")
 
     @property
     def is_generated(self) -> bool:
@@ -226,10 +238,15 @@ class Catalog:
         return self.runs[name]
 
     def asset_path(self, name: str) -> Path:
-        """The category's rigged asset; the embedded toy is generated (once) under the storage root."""
+        """The category's rigged asset as every stage loads it: the embedded toy is generated (once) under the
+        storage root; a user's file is normalised once (:func:`bat3r_core.assets.prepare_asset`: bind pose,
+        ``asset_scale``, ``up_axis``, its own texture embedded) into ``<storage root>/_assets/``."""
         cat = self.category(name)
         if not cat.is_generated:
-            return cat.require_asset()
+            from .assets import prepare_asset
+
+            return prepare_asset(cat.require_asset(), self.storage() / "_assets", cat.asset_scale, cat.up_axis,
+                                 name=name).path
         from .rig_io import save_rig_glb
         from .toy import build_toy_rig, toy_coat_texture
 
@@ -239,10 +256,20 @@ class Catalog:
         return path
 
     def load_rig(self, name: str):
-        """Load the category's rig (generating the toy if needed)."""
+        """Load the category's rig (normalised; generating the toy if needed)."""
         from .rig_io import load_rig
 
         return load_rig(self.asset_path(name))
+
+    def body_frame(self, name: str) -> BodyFrameJoints:
+        """The category's body-frame joints; ``body_frame: auto`` is resolved from its skeleton."""
+        cat = self.category(name)
+        if isinstance(cat.body_frame, BodyFrameJoints):
+            return cat.body_frame
+        from .assets import propose_body_frame
+
+        p = propose_body_frame(self.load_rig(name))
+        return BodyFrameJoints(origin=p.origin, forward=p.forward, horizontal=p.horizontal)
 
     # ------------------------------------------------------------------ typed stage configs
     def camera_prior_config(self, category: str | None = None):

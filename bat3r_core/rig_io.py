@@ -6,10 +6,12 @@ real skin (joint nodes, inverse bind matrices, JOINTS_n/WEIGHTS_n) that Blender'
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,8 @@ from scipy.spatial.transform import Rotation
 from .rig import Rig, RigError
 from .shards import atomic_write
 
-__all__ = ["load_rig", "save_rig_glb", "RigError"]
+__all__ = ["load_rig", "read_asset", "read_any_asset", "save_rig_glb", "check_plausible_size", "up_axis_rotation",
+           "AssetInfo", "RigError", "UP_AXES", "PLAUSIBLE_LENGTH_M"]
 
 _COMPONENT = {
     pygltflib.FLOAT: np.float32,
@@ -110,100 +113,402 @@ def _parents_of_nodes(gltf: pygltflib.GLTF2, path: Path) -> list[int]:
     return parent
 
 
-def _load_gltf(path: Path) -> Rig:
-    try:
-        gltf = pygltflib.GLTF2().load(str(path))
-    except Exception as e:  # pygltflib raises assorted errors on corrupt files
-        raise RigError(f"{path}: not a readable glTF/GLB file ({type(e).__name__}: {e})") from e
-    blob = gltf.binary_blob()
-    if blob is None and gltf.buffers:
-        uri = gltf.buffers[0].uri or ""
-        if uri.startswith("data:"):
+UP_AXES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+"""Values of a category's ``up_axis``: the asset's axis that points up (glTF's own convention is ``+Y``)."""
+
+PLAUSIBLE_LENGTH_M = (0.05, 20.0)
+"""Longest side (metres) of a plausible animal's rest-pose bounding box; outside it :func:`load_rig` refuses."""
+
+
+def up_axis_rotation(up_axis: str) -> np.ndarray:
+    """(3, 3) rotation taking the asset axis ``up_axis`` (one of :data:`UP_AXES`) to bat3r's up, ``+Y``.
+
+    Proper rotations only (no mirroring): ``+Z`` up maps ``(x, y, z) -> (x, z, -y)``, the inverse of glTF's
+    Y-up to Blender's Z-up change.
+    """
+    key = str(up_axis).strip().upper()
+    if key not in UP_AXES:
+        raise ValueError(f"up_axis must be one of {list(UP_AXES)}, got {up_axis!r}")
+    axis = np.zeros(3)
+    axis["XYZ".index(key[1])] = 1.0 if key[0] == "+" else -1.0
+    target = np.array([0.0, 1.0, 0.0])
+    if np.allclose(axis, target):
+        return np.eye(3)
+    if np.allclose(axis, -target):
+        return np.diag([1.0, -1.0, -1.0])  # half turn about +X
+    rotvec = np.cross(axis, target)  # quarter turn about axis x target
+    return Rotation.from_rotvec(rotvec / np.linalg.norm(rotvec) * np.pi / 2).as_matrix()
+
+
+def _rigid_part(m: np.ndarray) -> np.ndarray:
+    """The nearest rigid transform (polar rotation, same origin) of a 4x4 affine frame."""
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    r = u @ vt
+    if np.linalg.det(r) < 0:  # a mirrored frame: flip its least significant axis
+        u[:, -1] *= -1
+        r = u @ vt
+    out = np.eye(4)
+    out[:3, :3] = r
+    out[:3, 3] = m[:3, 3]
+    return out
+
+
+@dataclass(frozen=True)
+class AssetInfo:
+    """What :func:`read_asset` found in a file and what it did with it (the rig report's raw material).
+
+    Attributes:
+        path: the file. skin: index of the glTF skin used (the one binding the most vertices). joints: J.
+        file_vertices: V, the rig's vertex count (the file's own vertices, split at seams as stored).
+        meshes: ``(node name, what was done)`` for every mesh node of the scene: skinned, rigidly attached to a
+            joint (skinned to it with weight 1), or left out (and why).
+        morph_targets: number of morph targets on the used meshes (applied at their default weights).
+        morph_weights: the default weights applied (non-zero ones only move vertices).
+        animations: names of the file's animations (never applied: the rest pose is the bind pose).
+        scale: the asset scale applied (file units → metres). up_axis: the file's up axis.
+        texture: (H, W, 3) uint8 RGB base-colour texture of the dominant material, or None.
+        texture_source: where the texture came from (``"embedded image 0"``, a file name) or why there is none.
+        notes: further remarks (e.g. several materials, a mesh node transform the glTF spec ignores).
+    """
+
+    path: str
+    skin: int
+    joints: int
+    file_vertices: int
+    meshes: tuple[tuple[str, str], ...]
+    morph_targets: int
+    morph_weights: tuple[float, ...]
+    animations: tuple[str, ...]
+    scale: float
+    up_axis: str
+    texture: np.ndarray | None
+    texture_source: str
+    notes: tuple[str, ...]
+
+
+class _Gltf:
+    """A parsed glTF file: nodes, world matrices at the file's node TRS, accessors."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        try:
+            self.gltf = pygltflib.GLTF2().load(str(path))
+        except Exception as e:  # pygltflib raises assorted errors on corrupt files
+            raise RigError(f"{path}: not a readable glTF/GLB file ({type(e).__name__}: {e})") from e
+        self.blob = self._blob()
+        self.parent = _parents_of_nodes(self.gltf, path)
+        self._world: dict[int, np.ndarray] = {}
+
+    def _blob(self) -> bytes | None:
+        gltf = self.gltf
+        blob = gltf.binary_blob()
+        if blob is None and gltf.buffers:
+            uri = gltf.buffers[0].uri or ""
+            if uri.startswith("data:"):
+                import base64
+                blob = base64.b64decode(uri.split(",", 1)[1])
+            elif uri:
+                f = self.path.parent / uri
+                if not f.is_file():
+                    raise RigError(f"{self.path}: its buffer file {f} does not exist (keep the .bin beside the "
+                                   f".gltf)")
+                blob = f.read_bytes()
+        return blob
+
+    def accessor(self, index: int) -> np.ndarray:
+        return _read_accessor(self.gltf, self.blob, index, self.path)
+
+    def world(self, i: int) -> np.ndarray:
+        """(4, 4) world matrix of node ``i`` at the file's node TRS (animations not applied)."""
+        if i not in self._world:
+            p = self.parent[i]
+            self._world[i] = (self.world(p) if p != -1 else np.eye(4)) @ _node_matrix(self.gltf.nodes[i])
+        return self._world[i]
+
+    def scene_nodes(self) -> list[int]:
+        """Nodes reachable from the default scene (all nodes when the file names no scene)."""
+        gltf = self.gltf
+        if not gltf.scenes:
+            return list(range(len(gltf.nodes)))
+        roots = gltf.scenes[gltf.scene or 0].nodes or []
+        out, stack = [], list(roots)
+        while stack:
+            k = stack.pop()
+            out.append(k)
+            stack.extend(gltf.nodes[k].children or [])
+        return sorted(out)
+
+    def image(self, index: int) -> tuple[np.ndarray | None, str]:
+        """Decode image ``index`` to (H, W, 3) uint8 RGB, with a description of its source."""
+        import cv2
+
+        img = self.gltf.images[index]
+        if img.bufferView is not None:
+            view = self.gltf.bufferViews[img.bufferView]
+            data = self.blob[(view.byteOffset or 0):(view.byteOffset or 0) + view.byteLength]
+            source = f"embedded image {index}"
+        elif img.uri and img.uri.startswith("data:"):
             import base64
-            blob = base64.b64decode(uri.split(",", 1)[1])
+            data = base64.b64decode(img.uri.split(",", 1)[1])
+            source = f"data-URI image {index}"
+        elif img.uri:
+            from urllib.parse import unquote
+
+            f = self.path.parent / unquote(img.uri)
+            if not f.is_file():
+                return None, f"image file {f} does not exist"
+            data = f.read_bytes()
+            source = f.name
         else:
-            blob = (path.parent / uri).read_bytes()
+            return None, f"image {index} has no data"
+        arr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        if arr is None:
+            return None, f"{source} cannot be decoded"
+        return np.ascontiguousarray(arr[..., ::-1]), source
+
+
+def _primitive_positions(g: _Gltf, mesh: pygltflib.Mesh, node: pygltflib.Node, prim, label: str
+                         ) -> tuple[np.ndarray, int]:
+    """POSITION with the morph targets applied at their default weights; (positions, number of targets)."""
+    attrs = prim.attributes
+    if attrs.POSITION is None:
+        raise RigError(f"{g.path}: {label} has no POSITION attribute")
+    pos = g.accessor(attrs.POSITION).astype(np.float64)
+    targets = prim.targets or []
+    weights = getattr(node, "weights", None) or mesh.weights or []
+    for k, target in enumerate(targets):
+        w = float(weights[k]) if k < len(weights) else 0.0
+        index = target.get("POSITION") if isinstance(target, dict) else getattr(target, "POSITION", None)
+        if w != 0.0 and index is not None:
+            pos = pos + w * g.accessor(index).astype(np.float64)
+    if not np.isfinite(pos).all():
+        raise RigError(f"{g.path}: {label} has NaN/inf vertex positions")
+    return pos, len(targets)
+
+
+def _primitive_weights(g: _Gltf, prim, label: str, num_joints: int) -> np.ndarray | None:
+    """(n, num_joints) skin weights of a primitive from JOINTS_n/WEIGHTS_n (None when it has none)."""
+    attrs = prim.attributes
+    w = None
+    for s in range(_MAX_INFLUENCE_SETS + 2):
+        ja = getattr(attrs, f"JOINTS_{s}", None)
+        wa = getattr(attrs, f"WEIGHTS_{s}", None)
+        if ja is None or wa is None:
+            break
+        jj = g.accessor(ja).astype(np.int64)
+        ww = g.accessor(wa).astype(np.float64)
+        if w is None:
+            w = np.zeros((len(jj), num_joints))
+        if jj.max(initial=0) >= num_joints:
+            raise RigError(f"{g.path}: {label} JOINTS_{s} references joint {jj.max()} but the skin has "
+                           f"{num_joints} joints")
+        np.add.at(w, (np.repeat(np.arange(len(jj)), jj.shape[1]), jj.reshape(-1)), ww.reshape(-1))
+    return w
+
+
+def _skin_frames(g: _Gltf, skin: pygltflib.Skin) -> tuple[np.ndarray, np.ndarray]:
+    """(joints (n,) node indices, bind frames (n, 4, 4) in the skeleton's parent frame → file world).
+
+    The bind frame of joint j is ``A @ IBM_j^-1`` with ``A`` the world matrix of the node above the skeleton's
+    root joint (the frame the inverse bind matrices are expressed in). Without inverse bind matrices the joints'
+    world matrices at the file's node TRS are the bind pose.
+    """
+    joints = list(skin.joints)
+    if skin.inverseBindMatrices is None:
+        return np.asarray(joints), np.stack([g.world(n) for n in joints])
+    ibm = g.accessor(skin.inverseBindMatrices).astype(np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
+    if len(ibm) != len(joints):
+        raise RigError(f"{g.path}: skin '{skin.name}' has {len(joints)} joints but {len(ibm)} inverse bind matrices")
+    jset = set(joints)
+    roots = [n for n in joints if g.parent[n] not in jset]
+    above = g.parent[roots[0]] if roots else -1
+    a = g.world(above) if above != -1 else np.eye(4)
+    try:
+        return np.asarray(joints), a @ np.linalg.inv(ibm)
+    except np.linalg.LinAlgError:
+        raise RigError(f"{g.path}: skin '{skin.name}' has a singular inverse bind matrix") from None
+
+
+def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y") -> tuple[Rig, AssetInfo]:
+    """Read a glTF/GLB rig in bat3r's canonical rest pose, with a report of what was found and done.
+
+    The canonical rest pose is the **bind pose** defined by the inverse bind matrices (never the node pose the file
+    was saved in, nor any animation), placed by the scene-graph transform above the skeleton (as the glTF spec
+    places a skinned mesh), then scaled by ``scale`` (file units → metres) and rotated so that ``up_axis`` points
+    up (+Y). Meshes of the scene:
+
+    * skinned by the skin that binds the most vertices: used as they are;
+    * skinned by another skin whose joints all belong to it: re-bound into its bind pose by linear blend skinning;
+    * not skinned but below a joint in the hierarchy (eyes, tack): attached rigidly to that joint (weight 1);
+    * anything else (static props, other skeletons): left out, and listed in :attr:`AssetInfo.meshes`.
+
+    Morph targets are applied at their default weights (the node's ``weights``, else the mesh's, else 0).
+    Vertices stay as the file stores them (split at UV seams, or one triple per triangle); fitting welds them
+    (:mod:`bat3r_core.topology`). Joint rest frames are made rigid (the polar rotation of each bind frame, the
+    joint origin kept): θ then rotates about orthonormal axes, and skinning reproduces the bind pose exactly.
+    """
+    path = Path(path)
+    if not np.isfinite(scale) or scale <= 0:
+        raise ValueError(f"asset scale must be a positive number (file units -> metres), got {scale!r}")
+    g = _Gltf(path)
+    gltf = g.gltf
     if not gltf.skins:
         raise RigError(f"{path}: the mesh has no skin (no glTF 'skins'); bat3r needs a rigged, skinned mesh "
                        f"(armature + vertex weights)")
-    skin = gltf.skins[0]
-    joint_nodes = list(skin.joints)
-    skinned = [n for n in gltf.nodes if n.mesh is not None and n.skin == 0]
+    in_scene = g.scene_nodes()
+    mesh_nodes = [n for n in in_scene if gltf.nodes[n].mesh is not None]
+
+    def vertex_count(n: int) -> int:
+        return sum(gltf.accessors[p.attributes.POSITION].count for p in gltf.meshes[gltf.nodes[n].mesh].primitives
+                   if p.attributes.POSITION is not None)
+
+    skinned = [n for n in mesh_nodes if gltf.nodes[n].skin is not None]
     if not skinned:
-        raise RigError(f"{path}: no mesh node uses the skin; the mesh must be bound to the armature")
-    node_parent = _parents_of_nodes(gltf, path)
-    jset = {n: k for k, n in enumerate(joint_nodes)}
+        raise RigError(f"{path}: no mesh node uses a skin; the mesh must be bound to the armature")
+    per_skin: dict[int, int] = {}
+    for n in skinned:
+        per_skin[gltf.nodes[n].skin] = per_skin.get(gltf.nodes[n].skin, 0) + vertex_count(n)
+    skin_index = max(per_skin, key=lambda s: (per_skin[s], -s))
+    skin = gltf.skins[skin_index]
+    joint_nodes, bind = _skin_frames(g, skin)
+    jpos = {int(n): k for k, n in enumerate(joint_nodes)}
+    u = np.eye(4)
+    u[:3, :3] = float(scale) * up_axis_rotation(up_axis)
+    bind = u @ bind  # joint bind frames in bat3r's canonical frame (may carry the file's scale)
     parents = []
     for n in joint_nodes:
-        p = node_parent[n]
-        while p != -1 and p not in jset:
-            p = node_parent[p]
-        parents.append(jset[p] if p != -1 else -1)
+        p = g.parent[n]
+        while p != -1 and p not in jpos:
+            p = g.parent[p]
+        parents.append(jpos[p] if p != -1 else -1)
     names = [gltf.nodes[n].name or f"joint_{k}" for k, n in enumerate(joint_nodes)]
-    if skin.inverseBindMatrices is not None:
-        ibm = _read_accessor(gltf, blob, skin.inverseBindMatrices, path).astype(np.float64)
-        ibm = ibm.reshape(-1, 4, 4).transpose(0, 2, 1)
-        rest = np.linalg.inv(ibm)
-    else:  # bind pose = the nodes' global transforms
-        glob = {}
+    nj = len(joint_nodes)
 
-        def world(i):
-            if i not in glob:
-                p = node_parent[i]
-                glob[i] = (world(p) if p != -1 else np.eye(4)) @ _node_matrix(gltf.nodes[i])
-            return glob[i]
-
-        rest = np.stack([world(n) for n in joint_nodes])
-    verts, faces, uvs, weights = [], [], [], []
-    offset = 0
-    has_uv = True
-    for node in skinned:
+    verts, faces, uvs, weights, report, notes = [], [], [], [], [], []
+    material_faces: dict[int, int] = {}
+    offset, has_uv, n_targets, morph_w = 0, True, 0, []
+    for n in mesh_nodes:
+        node = gltf.nodes[n]
         mesh = gltf.meshes[node.mesh]
+        label_node = node.name or f"node {n}"
+        if node.skin is not None:
+            other = gltf.skins[node.skin]
+            if node.skin != skin_index and not all(int(j) in jpos for j in other.joints):
+                report.append((label_node, f"left out: skinned to skin {node.skin}, whose joints are not all in "
+                                           f"the rig's skin {skin_index}"))
+                continue
+            other_joints, other_bind = _skin_frames(g, other)
+            # maps from this skin's bind space into the rig's canonical rest pose, per influence joint
+            rebind = np.stack([bind[jpos[int(j)]] @ np.linalg.inv(other_bind[k])
+                               for k, j in enumerate(other_joints)])
+            column = np.array([jpos[int(j)] for j in other_joints])
+            how = "skinned" if node.skin == skin_index else f"skinned (skin {node.skin}, re-bound)"
+        else:
+            anc = g.parent[n]
+            while anc != -1 and anc not in jpos:
+                anc = g.parent[anc]
+            if anc == -1:
+                report.append((label_node, "left out: a static mesh, neither skinned nor below a joint"))
+                continue
+            j = jpos[anc]
+            local = np.linalg.inv(g.world(anc)) @ g.world(n)  # joint -> mesh node at the file's TRS
+            rigid = bind[j] @ local  # the mesh node in the rig's bind pose
+            how = f"rigid on joint '{names[j]}' (skinned to it with weight 1)"
+        n_before = offset
         for pi, prim in enumerate(mesh.primitives):
-            label = f"mesh '{mesh.name}' primitive {pi}"
-            attrs = prim.attributes
-            if attrs.POSITION is None:
-                raise RigError(f"{path}: {label} has no POSITION attribute")
-            pos = _read_accessor(gltf, blob, attrs.POSITION, path).astype(np.float64)
-            if not np.isfinite(pos).all():
-                raise RigError(f"{path}: {label} has NaN/inf vertex positions")
-            idx = (_read_accessor(gltf, blob, prim.indices, path).reshape(-1).astype(np.int64)
-                   if prim.indices is not None else np.arange(len(pos)))
+            label = f"mesh '{mesh.name}' primitive {pi} (node '{label_node}')"
+            pos, nt = _primitive_positions(g, mesh, node, prim, label)
+            n_targets += nt
+            ws = getattr(node, "weights", None) or mesh.weights or []
+            morph_w.extend(float(x) for x in list(ws)[:nt])
+            idx = (g.accessor(prim.indices).reshape(-1).astype(np.int64) if prim.indices is not None
+                   else np.arange(len(pos)))
             mode = _TRIANGLES if prim.mode is None else prim.mode
-            faces.append(_triangles(mode, idx, path, label) + offset)
-            w = np.zeros((len(pos), len(joint_nodes)))
-            found = False
-            for s in range(_MAX_INFLUENCE_SETS + 2):
-                ja = getattr(attrs, f"JOINTS_{s}", None)
-                wa = getattr(attrs, f"WEIGHTS_{s}", None)
-                if ja is None or wa is None:
-                    break
-                found = True
-                jj = _read_accessor(gltf, blob, ja, path).astype(np.int64)
-                ww = _read_accessor(gltf, blob, wa, path).astype(np.float64)
-                if jj.max(initial=0) >= len(joint_nodes):
-                    raise RigError(f"{path}: {label} JOINTS_{s} references joint {jj.max()} but the skin has "
-                                   f"{len(joint_nodes)} joints")
-                np.add.at(w, (np.repeat(np.arange(len(pos)), jj.shape[1]), jj.reshape(-1)), ww.reshape(-1))
-            if not found:
-                raise RigError(f"{path}: {label} has no JOINTS_0/WEIGHTS_0 skin attributes")
+            tri = _triangles(mode, idx, path, label)
+            if tri.size and tri.max() >= len(pos):
+                raise RigError(f"{path}: {label} indexes vertex {tri.max()} of {len(pos)}")
+            faces.append(tri + offset)
+            if prim.material is not None:
+                material_faces[prim.material] = material_faces.get(prim.material, 0) + len(tri)
+            ph = np.c_[pos, np.ones(len(pos))]
+            if node.skin is not None:
+                w_local = _primitive_weights(g, prim, label, len(other_joints))
+                if w_local is None:
+                    raise RigError(f"{path}: {label} has no JOINTS_0/WEIGHTS_0 skin attributes")
+                sums = w_local.sum(1, keepdims=True)
+                w_norm = w_local / np.where(sums > 0, sums, 1.0)
+                blended = np.einsum("vk,kij->vij", w_norm, rebind)  # (n, 4, 4)
+                x = np.einsum("vij,vj->vi", blended, ph)[:, :3]
+                w = np.zeros((len(pos), nj))
+                np.add.at(w, (slice(None), column), w_norm)
+                unweighted = (sums[:, 0] <= 0).sum()
+                if unweighted:  # glTF requires weights on every vertex; attach stray ones to the root joint
+                    w[sums[:, 0] <= 0, parents.index(-1)] = 1.0
+                    notes.append(f"{label}: {unweighted} vertices without skin weights attached to the root joint")
+            else:
+                x = ph @ rigid.T
+                x = x[:, :3]
+                w = np.zeros((len(pos), nj))
+                w[:, j] = 1.0
+            verts.append(x)
             weights.append(w)
-            verts.append(pos)
-            if attrs.TEXCOORD_0 is not None:
-                uvs.append(_read_accessor(gltf, blob, attrs.TEXCOORD_0, path).astype(np.float64))
+            if prim.attributes.TEXCOORD_0 is not None:
+                uvs.append(g.accessor(prim.attributes.TEXCOORD_0).astype(np.float64))
             else:
                 has_uv = False
             offset += len(pos)
+        report.append((label_node, f"{how}: {offset - n_before} vertices"))
+    if not verts:
+        raise RigError(f"{path}: no usable mesh (skinned, or rigidly below a joint) in the default scene")
     uv = None
     if has_uv and uvs:
         uv = np.concatenate(uvs)
         uv[:, 1] = 1.0 - uv[:, 1]  # glTF's UV origin is top-left; bat3r stores OpenGL-style (origin bottom-left)
-    name = Path(path).stem
+    rest = np.stack([_rigid_part(b) for b in bind])
     try:
-        return Rig.from_unordered(name, np.concatenate(verts), np.concatenate(faces), names, np.asarray(parents),
-                                  rest, np.concatenate(weights), uvs=uv)
+        rig = Rig.from_unordered(path.stem, np.concatenate(verts), np.concatenate(faces), names,
+                                 np.asarray(parents), rest, np.concatenate(weights), uvs=uv)
     except RigError as e:
         raise RigError(f"{path}: {e}") from None
+    texture, source = None, "the file has no base-colour texture"
+    if material_faces:
+        dominant = max(material_faces, key=lambda m: (material_faces[m], -m))
+        pbr = gltf.materials[dominant].pbrMetallicRoughness
+        if pbr is not None and pbr.baseColorTexture is not None:
+            tex = gltf.textures[pbr.baseColorTexture.index]
+            if tex.source is not None:
+                texture, source = g.image(tex.source)
+        elif pbr is not None and pbr.baseColorFactor is not None:
+            colour = np.clip(np.asarray(pbr.baseColorFactor[:3]) ** (1 / 2.2) * 255, 0, 255).astype(np.uint8)
+            texture, source = np.tile(colour, (4, 4, 1)), f"base-colour factor of material {dominant}"
+        if len(material_faces) > 1:
+            notes.append(f"{len(material_faces)} materials; the base colour of the one on the most faces "
+                         f"(material {dominant}) is used for the whole mesh")
+    info = AssetInfo(path=str(path), skin=skin_index, joints=nj, file_vertices=rig.num_vertices,
+                     meshes=tuple(report), morph_targets=n_targets, morph_weights=tuple(morph_w),
+                     animations=tuple(a.name or f"animation {k}" for k, a in enumerate(gltf.animations or [])),
+                     scale=float(scale), up_axis=str(up_axis).upper(), texture=texture, texture_source=source,
+                     notes=tuple(notes))
+    return rig, info
+
+
+def check_plausible_size(rig: Rig, path: str | os.PathLike, scale: float = 1.0) -> float:
+    """The rest-pose mesh's longest bounding-box side (metres); :class:`RigError` when it is outside
+    :data:`PLAUSIBLE_LENGTH_M`, with the extent and the fix (the catalog's ``asset_scale``)."""
+    extent = np.ptp(rig.rest_vertices, axis=0)
+    length = float(extent.max())
+    lo, hi = PLAUSIBLE_LENGTH_M
+    if lo <= length <= hi:
+        return length
+    file_length = length / scale
+    proposal = 10.0 ** np.round(np.log10(1.0 / file_length))  # the power of ten that makes it ~1 m long
+    units = {0.01: "centimetres", 0.001: "millimetres", 0.0254: "inches", 100.0: "hectometres"}
+    guess = units.get(float(proposal), f"units of {proposal:g} m")
+    raise RigError(
+        f"{path}: the rest-pose mesh is {length:.4g} m long (bounding box {extent[0]:.4g} x {extent[1]:.4g} x "
+        f"{extent[2]:.4g} m after asset_scale {scale:g}); an animal is {lo:g}-{hi:g} m. The file is probably in "
+        f"{guess}: set `asset_scale: {proposal:g}` for this category in the data catalog (or pass "
+        f"--asset-scale {proposal:g}), and `up_axis` if it is not Y-up.")
 
 
 def _convert_with_blender(path: Path) -> Path:
@@ -216,28 +521,39 @@ def _convert_with_blender(path: Path) -> Path:
     return out
 
 
-def load_rig(path: str | os.PathLike) -> Rig:
-    """Load a rigged, skinned mesh (``.glb``/``.gltf``; ``.fbx``/``.blend`` are converted through Blender).
-
-    Raises:
-        FileNotFoundError: the file does not exist (the message names it).
-        RigError: the asset is not a usable rig (no skin, bad weights, cycles or several roots, NaN vertices,
-            faces that cannot be triangulated, ...); the message names the file and the problem.
-    """
+def read_any_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y") -> tuple[Rig, AssetInfo]:
+    """:func:`read_asset` for ``.glb``/``.gltf``, and for ``.fbx``/``.blend`` after conversion through Blender."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"rigged asset {path} does not exist; provide a rigged, skinned mesh "
                                 f"(.glb/.gltf, or .fbx/.blend converted through Blender)")
     suffix = path.suffix.lower()
     if suffix in (".glb", ".gltf"):
-        return _load_gltf(path)
+        return read_asset(path, scale, up_axis)
     if suffix in (".fbx", ".blend"):
         converted = _convert_with_blender(path)
-        rig = _load_gltf(converted)
-        return Rig(name=path.stem, rest_vertices=rig.rest_vertices, faces=rig.faces, joint_names=rig.joint_names,
-                   parents=rig.parents, rest_transforms=rig.rest_transforms, skin_weights=rig.skin_weights,
-                   uvs=rig.uvs)
+        rig, info = read_asset(converted, scale, up_axis)
+        rig = Rig(name=path.stem, rest_vertices=rig.rest_vertices, faces=rig.faces, joint_names=rig.joint_names,
+                  parents=rig.parents, rest_transforms=rig.rest_transforms, skin_weights=rig.skin_weights,
+                  uvs=rig.uvs)
+        return rig, dataclasses.replace(info, path=str(path))
     raise RigError(f"{path}: unsupported rig format '{suffix}'; expected .glb, .gltf, .fbx or .blend")
+
+
+def load_rig(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y", check_size: bool = True) -> Rig:
+    """Load a rigged, skinned mesh (``.glb``/``.gltf``; ``.fbx``/``.blend`` are converted through Blender) in
+    bat3r's canonical rest pose (:func:`read_asset`), scaled to metres by ``scale`` and turned Y-up.
+
+    Raises:
+        FileNotFoundError: the file does not exist (the message names it).
+        RigError: the asset is not a usable rig (no skin, bad weights, cycles or several roots, NaN vertices,
+            faces that cannot be triangulated, ...) or, with ``check_size``, its size is implausible for an animal
+            (:func:`check_plausible_size`: e.g. a file in centimetres); the message names the file and the fix.
+    """
+    rig, _ = read_any_asset(path, scale, up_axis)
+    if check_size:
+        check_plausible_size(rig, path, scale)
+    return rig
 
 
 # ----------------------------------------------------------------------------------------------------- writing

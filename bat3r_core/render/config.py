@@ -112,7 +112,8 @@ class SceneAssets:
     Attributes:
         asset: the rigged canonical mesh (GLB/glTF; FBX/.blend are converted first by the runner).
         textures: one entry per ``texture_id``: an image file path, or ``"toy:<coat>"`` for a procedural toy coat
-            (:data:`bat3r_core.toy.TOY_COATS`).
+            (:data:`bat3r_core.toy.TOY_COATS`). Empty: the asset's own base-colour texture (the one embedded in the
+            GLB) is the only texture, ``texture_id`` 0.
         envmaps: one HDR/EXR (or LDR) file per ``envmap_id``; ``envmap_id = -1`` uses a procedural sky.
     """
 
@@ -121,5 +122,10 @@ class SceneAssets:
     envmaps: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        if not self.textures:
-            raise ValueError("SceneAssets.textures must list at least one texture")
+        if isinstance(self.textures, str):
+            raise TypeError("SceneAssets.textures must be a sequence of texture entries, not one string")
+
+    @property
+    def num_textures(self) -> int:
+        """Texture ids a job may use: the listed textures, or 1 (the asset's own) when none are listed."""
+        return max(len(self.textures), 1)

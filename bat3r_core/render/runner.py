@@ -4,9 +4,10 @@
 streams the shard's jobs to it on stdin, starts a fresh process every ``RenderConfig.recycle_every`` images, kills
 a process that makes no progress for ``timeout_s``, and when a process dies retries the jobs it had not finished
 (at most ``RenderConfig.retries`` restarts per shard; a job that was being rendered during two crashes is recorded
-as ``failed`` and skipped). It then labels every rendered image exactly: the same job's θ and global similarity
-skin the rig with :mod:`bat3r_core.skinning` and :mod:`bat3r_core.pointmaps` ray-casts that mesh through the
-job's camera. The shard is written with :func:`bat3r_core.shards.write_shard` in the "Training samples" format of
+as ``failed`` and skipped). Before rendering it skins the rig with each job's θ and global similarity
+(:mod:`bat3r_core.skinning`) and hands the worker those vertices to render; afterwards
+:mod:`bat3r_core.pointmaps` ray-casts the same vertices through the job's camera, so labels and pixels agree by
+construction. The shard is written with :func:`bat3r_core.shards.write_shard` in the "Training samples" format of
 docs/CONVENTIONS.md.
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ from bat3r_core.render.jobs import RenderJob, job_to_dict, read_jobs
 from bat3r_core.rig import Rig
 
 __all__ = ["ShardResult", "render_shard", "render_jobs", "render_command", "convert_to_glb", "label_job",
-           "mask_iou"]
+           "posed_vertices", "mask_iou"]
 
 _PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -144,10 +145,11 @@ def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir:
         return proc.returncode, killed, ready or ready_file.exists()
 
 
-def _render_images(jobs: Sequence[RenderJob], assets: SceneAssets, config: RenderConfig, workdir: Path,
-                   debug_vertices: bool, gpu_index: int | None,
+def _render_images(jobs: Sequence[RenderJob], posed: Sequence[np.ndarray | None], assets: SceneAssets,
+                   config: RenderConfig, workdir: Path, debug_vertices: bool, gpu_index: int | None,
                    on_worker_start: Callable[[subprocess.Popen], None] | None) -> tuple[dict[int, dict], int, int]:
-    """Render all jobs into ``workdir``; returns (results by job index, processes started, crashes)."""
+    """Render all jobs into ``workdir`` (``posed[i]``: job i's skinned vertices, None when it cannot be posed);
+    returns (results by job index, processes started, crashes)."""
     spec_path = workdir / "spec.json"
     spec_path.write_text(json.dumps({"asset": str(assets.asset), "textures": list(assets.textures),
                                      "envmaps": list(assets.envmaps), "config": to_mapping(config),
@@ -159,6 +161,9 @@ def _render_images(jobs: Sequence[RenderJob], assets: SceneAssets, config: Rende
     for i, job in enumerate(jobs):
         row = job_to_dict(job)
         row["index"] = i
+        if posed[i] is not None:  # the worker renders exactly these vertices
+            row["vertices_file"] = str(workdir / f"pose-{i:06d}.npy")
+            np.save(row["vertices_file"], posed[i].astype(np.float32))
         rows.append(row)
     pending = list(range(len(jobs)))
     failed: dict[int, dict] = {}
@@ -201,16 +206,11 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
     return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
 
 
-def label_job(rig: Rig, job: RenderJob, num_layers: int = 4):
-    """Exact labels of a job: the rig skinned by ``bat3r_core.skinning`` with the job's θ and global similarity,
-    ray-cast through its camera.
-
-    Returns:
-        (posed_vertices (V, 3) float64 world frame metres, :class:`bat3r_core.pointmaps.DualPointMaps`).
-    """
+def posed_vertices(rig: Rig, job: RenderJob) -> np.ndarray:
+    """(V, 3) float64: the rig skinned by :mod:`bat3r_core.skinning` with the job's θ and global similarity
+    (world frame, metres) — what the worker renders and what the labels ray-cast."""
     import torch
 
-    from bat3r_core.pointmaps import dual_point_maps
     from bat3r_core.skinning import skin
 
     tensors = rig.tensors(dtype=torch.float64)
@@ -218,7 +218,19 @@ def label_job(rig: Rig, job: RenderJob, num_layers: int = 4):
                global_scale=torch.tensor([float(job.global_scale)], dtype=torch.float64),
                global_rotation=torch.as_tensor(np.asarray(job.global_rotation, dtype=np.float64))[None],
                global_translation=torch.as_tensor(np.asarray(job.global_translation, dtype=np.float64))[None])
-    posed = out.vertices[0].numpy()
+    return out.vertices[0].numpy()
+
+
+def label_job(rig: Rig, job: RenderJob, num_layers: int = 4, posed: np.ndarray | None = None):
+    """Exact labels of a job: the rig skinned with the job's pose (:func:`posed_vertices`, or ``posed`` when
+    given), ray-cast through its camera.
+
+    Returns:
+        (posed_vertices (V, 3) float64 world frame metres, :class:`bat3r_core.pointmaps.DualPointMaps`).
+    """
+    from bat3r_core.pointmaps import dual_point_maps
+
+    posed = posed_vertices(rig, job) if posed is None else posed
     maps = dual_point_maps(posed, rig.rest_vertices, rig.faces, job.camera, num_layers=num_layers)
     return posed, maps
 
@@ -276,7 +288,11 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
     glb = convert_to_glb(assets.asset, workdir)
     assets = SceneAssets(asset=str(glb), textures=assets.textures, envmaps=assets.envmaps)
     rig = rig if rig is not None else load_rig(glb)
-    results, processes, crashes = _render_images(jobs, assets, config, workdir, debug_vertices, gpu_index,
+    posed = []
+    for job in jobs:
+        ok = not job.problems(rig.num_joints)
+        posed.append(posed_vertices(rig, job) if ok else None)  # a bad job is reported by the worker
+    results, processes, crashes = _render_images(jobs, posed, assets, config, workdir, debug_vertices, gpu_index,
                                                  on_worker_start)
     n, k = len(jobs), config.num_layers
     # float16 labels when the rig is small enough for sub-millimetre round trips, float32 otherwise
@@ -300,7 +316,7 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
                     arrays["mask"][i] = z["mask"]
                     if debug_vertices:
                         arrays["blender_vertices"][i] = z["posed_vertices"]
-                _, maps = label_job(rig, job, k)
+                _, maps = label_job(rig, job, k, posed[i])
                 iou = mask_iou(arrays["mask"][i], maps.mask)
                 if maps.status != "ok":
                     status, reason = maps.status, maps.reason
@@ -354,10 +370,10 @@ def render_command(jobs: str | os.PathLike, asset: str | os.PathLike, out: str |
                    envmaps: Sequence[str] = (), shard_index: int = 0, debug_vertices: bool = False) -> ShardResult:
     """``bat3r render --jobs JOBS.parquet --asset ASSET --out DIR``: render one job file as one shard by hand.
 
-    ``textures`` default to the toy's procedural coats. Returns the :class:`ShardResult` (its files are
+    No ``textures``: the asset's own base-colour texture. Returns the :class:`ShardResult` (its files are
     ``DIR/part-<shard_index>.parquet/.npz``).
     """
     job_list = read_jobs(jobs)
-    assets = SceneAssets(asset=str(asset), textures=tuple(textures) if textures else SceneAssets("").textures,
+    assets = SceneAssets(asset=str(asset), textures=tuple(textures or ()),
                          envmaps=tuple(envmaps))
     return render_shard(job_list, assets, out, shard_index, config, debug_vertices=debug_vertices)

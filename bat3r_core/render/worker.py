@@ -14,15 +14,13 @@ then appends one JSON line ``{"index", "sample_id", "status", "reason", "seconds
 that cannot render (bad texture or environment file, NaN pose or camera) gets a non-``ok`` status and the worker
 goes on with the next one.
 
-Frames. Blender's glTF importer turns glTF's Y-up world into Blender's Z-up world with
-``W = GLTF_TO_BLENDER_WORLD`` (``(x, y, z) -> (x, -z, y)``) and may re-orient bones. bat3r's θ_j rotates joint
-``j`` in its rest frame ``G_rest[j]`` (canonical frame). With ``C`` the map canonical frame -> armature space
-(``A0^-1 W``, ``A0`` the armature object's import matrix) and ``B_j`` the bone's rest matrix in armature space,
-``X_j = G_rest[j]^-1 C^-1 B_j`` relates the two rest frames and the pose bone's local matrix is the conjugate
-``basis_j = X_j^-1 [R(θ_j) | 0] X_j``; with Blender's default inheritance this reproduces
-``G_j G_rest[j]^-1`` of :mod:`bat3r_core.skinning` for every bone (derivation in docs/rendering.md). The global
-similarity ``S`` goes on the armature object: ``A = W S W^-1 A0``. Cameras come from
-:func:`bat3r_core.cameras.to_blender` with ``world_rotation = W``.
+Geometry. The worker never poses an armature: it builds the mesh from the rig's own arrays (the file's vertices,
+triangles and UVs, as :func:`bat3r_core.rig_io.load_rig` reads them) and, for each job, writes into it the posed
+vertices that the runner computed with :mod:`bat3r_core.skinning` for that job (``vertices_file``, an ``.npy`` of
+``(V, 3)`` float32 in bat3r's world frame). Blender therefore renders exactly the mesh that is ray-cast for the
+labels, whatever the asset's animations, node pose, bone orientations or morph targets: agreement by construction.
+The mesh object carries ``W = GLTF_TO_BLENDER_WORLD`` (``(x, y, z) -> (x, -z, y)``), bat3r's Y-up world in
+Blender's Z-up one; cameras come from :func:`bat3r_core.cameras.to_blender` with ``world_rotation = W``.
 """
 from __future__ import annotations
 
@@ -57,16 +55,6 @@ def _log(msg: str) -> None:
     print(f"[bat3r-worker {os.getpid()}] {msg}", file=sys.stderr, flush=True)
 
 
-def _rotvec_matrix(v: np.ndarray) -> np.ndarray:
-    """Rodrigues: (3,) axis-angle radians -> (3, 3)."""
-    a = float(np.linalg.norm(v))
-    if a < 1e-12:
-        return np.eye(3)
-    k = v / a
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(a) * kx + (1 - math.cos(a)) * kx @ kx
-
-
 class JobError(Exception):
     """A job that cannot be rendered: ``status`` is the short code recorded in its row."""
 
@@ -86,10 +74,10 @@ class BlenderRenderer:
         self.config = config
         self.workdir = Path(workdir)
         self.debug_vertices = debug_vertices
-        self.rig = load_rig(assets.asset)
+        self.rig = load_rig(assets.asset, check_size=False)
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene
-        self._import_asset()
+        self._build_mesh()
         self._setup_render()
         self._setup_material()
         self._setup_worlds()
@@ -98,48 +86,31 @@ class BlenderRenderer:
         self._envmaps: dict[int, object] = {}
 
     # ------------------------------------------------------------------------------------------------ setup
-    def _import_asset(self) -> None:
-        bpy.ops.import_scene.gltf(filepath=str(self.assets.asset))
-        arms = [o for o in self.scene.objects if o.type == "ARMATURE"]
-        skinned = [o for o in self.scene.objects if o.type == "MESH"
-                   and any(m.type == "ARMATURE" for m in o.modifiers)]
-        if len(arms) != 1 or not skinned:
-            raise RuntimeError(f"{self.assets.asset}: expected one armature and a skinned mesh after import, got "
-                               f"{len(arms)} armatures and {len(skinned)} skinned meshes")
-        self.armature = arms[0]
-        self.mesh = max(skinned, key=lambda o: len(o.data.vertices))
-        for o in self.scene.objects:  # bone display shapes and any other helper geometry stay out of the image
-            if o is not self.mesh and o is not self.armature:
-                o.hide_render = True
+    def _build_mesh(self) -> None:
+        """The rig's mesh as a Blender object (file vertices, triangles and UVs; no armature)."""
+        rig = self.rig
+        me = bpy.data.meshes.new("bat3r_mesh")
+        me.from_pydata(rig.rest_vertices.tolist(), [], rig.faces.tolist())
+        if rig.uvs is not None:
+            layer = me.uv_layers.new(name="UVMap")
+            loop_vertices = np.empty(len(me.loops), dtype=np.int64)
+            me.loops.foreach_get("vertex_index", loop_vertices)
+            layer.data.foreach_set("uv", rig.uvs[loop_vertices].astype(np.float32).ravel())
+        me.polygons.foreach_set("use_smooth", np.ones(len(me.polygons), dtype=bool))
+        me.update()
+        self.mesh = bpy.data.objects.new("bat3r_mesh", me)
+        self.scene.collection.objects.link(self.mesh)
+        self.mesh.matrix_world = Matrix(_W4.tolist())
         self.mesh.pass_index = MESH_PASS_INDEX
-        if self.mesh.parent is not self.armature:  # the similarity moves the armature; the mesh must follow it
-            self.mesh.parent = self.armature
-            self.mesh.matrix_parent_inverse = self.armature.matrix_world.inverted()
-        self.a0 = np.array(self.armature.matrix_world)
-        c = np.linalg.inv(self.a0) @ _W4  # canonical (glTF) frame -> armature space
-        c_inv = np.linalg.inv(c)
-        bones = self.armature.data.bones
-        self.conj: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        for j, name in enumerate(self.rig.joint_names):
-            if name not in bones:
-                raise RuntimeError(f"{self.assets.asset}: joint '{name}' has no bone after import; bones: "
-                                   f"{[b.name for b in bones][:10]}...")
-            x = np.linalg.inv(self.rig.rest_transforms[j]) @ c_inv @ np.array(bones[name].matrix_local)
-            self.conj[name] = (x, np.linalg.inv(x))
-        for pb in self.armature.pose.bones:
-            pb.rotation_mode = "QUATERNION"
-            pb.matrix_basis = Matrix.Identity(4)
-        # imported vertex -> rig vertex correspondence (the importer may split or reorder vertices)
-        from scipy.spatial import cKDTree
+        if len(me.vertices) != rig.num_vertices:
+            raise RuntimeError(f"{self.assets.asset}: Blender's mesh has {len(me.vertices)} vertices, the rig "
+                               f"{rig.num_vertices}")
 
-        local = np.empty(len(self.mesh.data.vertices) * 3)
-        self.mesh.data.vertices.foreach_get("co", local)
-        world = self._to_bat3r(local.reshape(-1, 3), np.array(self.mesh.matrix_world))
-        dist, self.vertex_map = cKDTree(world).query(self.rig.rest_vertices)
-        self.vertex_map_error = float(dist.max())
-        if self.debug_vertices and self.vertex_map_error > 1e-4:
-            raise RuntimeError(f"{self.assets.asset}: the imported mesh does not match the rig's rest vertices "
-                               f"(up to {self.vertex_map_error:.3g} m apart); cannot report posed vertices")
+    def _set_vertices(self, vertices: np.ndarray) -> None:
+        """Write posed vertices (V, 3), bat3r world frame, into the mesh."""
+        me = self.mesh.data
+        me.vertices.foreach_set("co", np.ascontiguousarray(vertices, dtype=np.float32).ravel())
+        me.update()
 
     @staticmethod
     def _to_bat3r(local: np.ndarray, matrix_world: np.ndarray) -> np.ndarray:
@@ -303,22 +274,44 @@ class BlenderRenderer:
             node.file_name = ""
 
     # ------------------------------------------------------------------------------------------------ per job
+    def _posed_vertices(self, row: dict) -> np.ndarray:
+        """The job's posed vertices (V, 3) as bat3r's skinning computed them (the runner's ``vertices_file``)."""
+        path = row.get("vertices_file")
+        if not path:
+            raise JobError("bad_job", "the job has no vertices_file (the runner writes the posed vertices)")
+        v = np.load(path, allow_pickle=False)
+        if v.shape != (self.rig.num_vertices, 3) or not np.isfinite(v).all():
+            raise JobError("bad_job", f"{path}: expected finite posed vertices of shape ({self.rig.num_vertices}, 3), "
+                                      f"got {v.shape}")
+        return v
+
+    @staticmethod
+    def _image_from_array(name: str, rgb: np.ndarray):
+        img = bpy.data.images.new(name, rgb.shape[1], rgb.shape[0])
+        rgba = np.ones((rgb.shape[0], rgb.shape[1], 4), dtype=np.float32)
+        rgba[..., :3] = rgb[::-1] / 255.0  # Blender stores rows bottom-up
+        img.pixels.foreach_set(rgba.ravel())
+        img.pack()
+        return img
+
     def _texture(self, texture_id: int):
         if texture_id in self._images:
             return self._images[texture_id]
-        if texture_id >= len(self.assets.textures):
+        if texture_id >= self.assets.num_textures:
             raise JobError("bad_texture", f"texture_id {texture_id} is out of range: the category has "
-                                          f"{len(self.assets.textures)} textures")
+                                          f"{self.assets.num_textures} textures")
+        if not self.assets.textures:  # the asset's own base-colour texture (grey when it has none)
+            from bat3r_core.rig_io import read_any_asset
+
+            own = read_any_asset(self.assets.asset)[1].texture
+            own = own if own is not None else np.full((4, 4, 3), 160, np.uint8)
+            self._images[texture_id] = self._image_from_array("asset_base_colour", own)
+            return self._images[texture_id]
         entry = self.assets.textures[texture_id]
         if entry.startswith("toy:"):
             from bat3r_core.toy import toy_coat_texture
 
-            coat = toy_coat_texture(entry[4:], size=512, seed=0)
-            img = bpy.data.images.new(f"coat_{texture_id}", coat.shape[1], coat.shape[0])
-            rgba = np.ones((coat.shape[0], coat.shape[1], 4), dtype=np.float32)
-            rgba[..., :3] = coat[::-1] / 255.0  # Blender stores rows bottom-up
-            img.pixels.foreach_set(rgba.ravel())
-            img.pack()
+            img = self._image_from_array(f"coat_{texture_id}", toy_coat_texture(entry[4:], size=512, seed=0))
         else:
             img = self._load_image(entry, "bad_texture", "texture")
         self._images[texture_id] = img
@@ -375,18 +368,6 @@ class BlenderRenderer:
         self.env_mapping.inputs["Rotation"].default_value = (0.0, 0.0, rotation)
         self.scene.world = self.env_world
 
-    def _pose(self, theta: np.ndarray, scale: float, rotation: np.ndarray, translation: np.ndarray) -> None:
-        bones = self.armature.pose.bones
-        for j, name in enumerate(self.rig.joint_names):
-            x, x_inv = self.conj[name]
-            r = np.eye(4)
-            r[:3, :3] = _rotvec_matrix(theta[j])
-            bones[name].matrix_basis = Matrix((x_inv @ r @ x).tolist())
-        s = np.eye(4)
-        s[:3, :3] = scale * rotation
-        s[:3, 3] = translation
-        self.armature.matrix_world = Matrix((_W4 @ s @ np.linalg.inv(_W4) @ self.a0).tolist())
-
     def _set_camera(self, camera: PinholeCamera) -> None:
         b = to_blender(camera, world_rotation=GLTF_TO_BLENDER_WORLD)
         cam = self.camera.data
@@ -408,7 +389,7 @@ class BlenderRenderer:
         me.vertices.foreach_get("co", co)
         mw = np.array(ob.matrix_world)
         ob.to_mesh_clear()
-        return self._to_bat3r(co.reshape(-1, 3), mw)[self.vertex_map]
+        return self._to_bat3r(co.reshape(-1, 3), mw)
 
     def render(self, row: dict) -> dict:
         """Render one job row (dict of the job columns + ``index``); returns its result record."""
@@ -423,8 +404,7 @@ class BlenderRenderer:
         img = self._texture(job.texture_id)
         self._set_world(job.envmap_id, job.envmap_rotation, job.seed)
         self.tex_node.image = img
-        self._pose(np.asarray(job.excess_rotations), job.global_scale, np.asarray(job.global_rotation),
-                   np.asarray(job.global_translation))
+        self._set_vertices(self._posed_vertices(row))
         self._set_camera(job.camera)
         self.scene.cycles.seed = int(job.seed) % (2 ** 31)
         frame_dir = self.workdir / "_frame"
@@ -464,7 +444,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     renderer = BlenderRenderer(assets, config, out, debug_vertices=bool(spec.get("debug_vertices", False)))
-    _log(f"scene ready in {time.perf_counter() - t0:.2f} s (vertex map error {renderer.vertex_map_error:.2e} m)")
+    _log(f"scene ready in {time.perf_counter() - t0:.2f} s ({renderer.rig.num_vertices} vertices)")
     (out / f"ready-{os.getpid()}").touch()  # tells the runner that start-up succeeded
     with open(args.results, "a", encoding="utf-8") as results:
         for line in sys.stdin:
