@@ -196,7 +196,8 @@ def build_parser() -> argparse.ArgumentParser:
     rd.add_argument("--asset", required=True, type=Path, help="rigged asset (.glb/.gltf/.fbx/.blend)")
     rd.add_argument("--out", required=True, type=Path, help="output folder of the training shard")
     rd.add_argument("--preset", default="tiny", help="run preset whose render settings to use (tiny, demo, paper)")
-    rd.add_argument("--texture", action="append", help="texture image (repeatable; default: the toy's coats)")
+    rd.add_argument("--texture", action="append", help="texture image or toy:<coat> (repeatable; default: the "
+                    "asset's own base-colour texture)")
     rd.add_argument("--envmap", action="append", help="HDR/EXR environment map (repeatable; default: a sky)")
     rd.add_argument("--shard", type=int, default=0, help="shard index of the output (part-NNNNN)")
     _catalog_option(rd)

@@ -170,10 +170,11 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
     if not 0.0 <= mff <= 1.0:
         raise ConfigError(f"max_failed_fraction: must be in [0, 1], got {mff}")
     asset = catalog.asset_path(category)
-    assets = SceneAssets(asset=str(asset), textures=tuple(_texture(catalog.root, t) for t in cat.textures)
-                         or SceneAssets("").textures,
+    # no textures: the toy renders its procedural coats, any other asset its own base-colour texture (empty list)
+    textures = tuple(_texture(catalog.root, t) for t in cat.textures)
+    assets = SceneAssets(asset=str(asset), textures=textures or (SceneAssets("").textures if cat.is_generated else ()),
                          envmaps=tuple(str(cat.resolve(e)) for e in cat.environment_maps))
-    bf = cat.body_frame
+    bf = catalog.body_frame(category)
     return RunSettings(
         layout=RunLayout(catalog.storage(), category, run_name), category=category, preset=preset,
         iterations=run.iterations, image_size=run.image_size, layers=catalog.layers, shard_size=shard_size,
