@@ -56,9 +56,24 @@ def _read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int, path: Path) -
             raw = np.frombuffer(blob, dtype=np.uint8, count=stride * (acc.count - 1) + elem, offset=start)
             rows = np.lib.stride_tricks.as_strided(raw, shape=(acc.count, elem), strides=(stride, 1))
             out = rows.copy().view(dtype).reshape(acc.count, ncomp)
-    if acc.sparse is not None:
-        raise RigError(f"{path}: sparse accessors are not supported (accessor {index})")
     out = np.array(out)
+    if acc.sparse is not None:  # a few replaced elements (Blender writes morph targets this way)
+        sp = acc.sparse
+
+        def view_bytes(bv: int, offset: int | None) -> int:
+            v = gltf.bufferViews[bv]
+            if v.buffer != 0:
+                raise RigError(f"{path}: only single-buffer glTF/GLB files are supported (accessor {index})")
+            return (v.byteOffset or 0) + (offset or 0)
+
+        idx_dtype = np.dtype(_COMPONENT[sp.indices.componentType]).newbyteorder("<")
+        idx = np.frombuffer(blob, dtype=idx_dtype, count=sp.count,
+                            offset=view_bytes(sp.indices.bufferView, sp.indices.byteOffset)).astype(np.int64)
+        values = np.frombuffer(blob, dtype=dtype, count=sp.count * ncomp,
+                               offset=view_bytes(sp.values.bufferView, sp.values.byteOffset)).reshape(sp.count, ncomp)
+        if idx.size and (idx.min() < 0 or idx.max() >= acc.count):
+            raise RigError(f"{path}: sparse accessor {index} replaces element {idx.max()} of {acc.count}")
+        out[idx] = values
     if acc.normalized and acc.componentType != pygltflib.FLOAT:
         out = out.astype(np.float64) / np.iinfo(dtype).max
     return out
@@ -169,6 +184,8 @@ class AssetInfo:
         texture: (H, W, 3) uint8 RGB base-colour texture of the dominant material, or None.
         texture_source: where the texture came from (``"embedded image 0"``, a file name) or why there is none.
         notes: further remarks (e.g. several materials, a mesh node transform the glTF spec ignores).
+        bind_scale: (min, max) scale of the joints' bind frames relative to the skeleton's parent node (the
+            singular values of the inverse inverse-bind matrices; (1, 1) for rigid bind frames).
     """
 
     path: str
@@ -184,6 +201,7 @@ class AssetInfo:
     texture: np.ndarray | None
     texture_source: str
     notes: tuple[str, ...]
+    bind_scale: tuple[float, float] = (1.0, 1.0)
 
 
 class _Gltf:
@@ -306,35 +324,43 @@ def _primitive_weights(g: _Gltf, prim, label: str, num_joints: int) -> np.ndarra
     return w
 
 
-def _skin_frames(g: _Gltf, skin: pygltflib.Skin) -> tuple[np.ndarray, np.ndarray]:
-    """(joints (n,) node indices, bind frames (n, 4, 4) in the skeleton's parent frame → file world).
+def _skin_frames(g: _Gltf, skin: pygltflib.Skin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(joints (n,) node indices, bind frames (n, 4, 4) joint → world, inverse bind matrices (n, 4, 4)).
 
-    The bind frame of joint j is ``A @ IBM_j^-1`` with ``A`` the world matrix of the node above the skeleton's
-    root joint (the frame the inverse bind matrices are expressed in). Without inverse bind matrices the joints'
-    world matrices at the file's node TRS are the bind pose.
+    A vertex is skinned as ``Σ w_j J_j IBM_j v`` (glTF 2.0, skins; the mesh node's own transform is ignored), so the
+    joint configuration in which the mesh appears as stored is ``J_j = IBM_j^-1``: that is the bind pose, and the
+    scene graph above the skeleton enters it only through the inverse bind matrices (exporters bake it there).
+    Without inverse bind matrices (identity by the spec) the joints' world matrices at the file's node TRS are
+    taken as the bind pose.
     """
     joints = list(skin.joints)
     if skin.inverseBindMatrices is None:
-        return np.asarray(joints), np.stack([g.world(n) for n in joints])
+        world = np.stack([g.world(n) for n in joints])
+        return np.asarray(joints), world, np.linalg.inv(world)
     ibm = g.accessor(skin.inverseBindMatrices).astype(np.float64).reshape(-1, 4, 4).transpose(0, 2, 1)
     if len(ibm) != len(joints):
         raise RigError(f"{g.path}: skin '{skin.name}' has {len(joints)} joints but {len(ibm)} inverse bind matrices")
-    jset = set(joints)
-    roots = [n for n in joints if g.parent[n] not in jset]
-    above = g.parent[roots[0]] if roots else -1
-    a = g.world(above) if above != -1 else np.eye(4)
     try:
-        return np.asarray(joints), a @ np.linalg.inv(ibm)
+        return np.asarray(joints), np.linalg.inv(ibm), ibm
     except np.linalg.LinAlgError:
         raise RigError(f"{g.path}: skin '{skin.name}' has a singular inverse bind matrix") from None
+
+
+def _node_pose_scale(g: _Gltf, joints: np.ndarray, ibm: np.ndarray) -> float:
+    """Scale of the skeleton's root joint at the file's node pose relative to its bind frame (1 when the file's
+    scene graph and node pose agree with the inverse bind matrices)."""
+    roots = [k for k, n in enumerate(joints) if g.parent[int(n)] not in set(int(j) for j in joints)]
+    k = roots[0] if roots else 0
+    m = g.world(int(joints[k])) @ ibm[k]
+    return float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
 
 
 def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y") -> tuple[Rig, AssetInfo]:
     """Read a glTF/GLB rig in bat3r's canonical rest pose, with a report of what was found and done.
 
     The canonical rest pose is the **bind pose** defined by the inverse bind matrices (never the node pose the file
-    was saved in, nor any animation), placed by the scene-graph transform above the skeleton (as the glTF spec
-    places a skinned mesh), then scaled by ``scale`` (file units → metres) and rotated so that ``up_axis`` points
+    was saved in, nor any animation): the joints at ``IBM_j^-1``, where glTF's skinning shows the mesh as stored
+    (:func:`_skin_frames`), then scaled by ``scale`` (file units → metres) and rotated so that ``up_axis`` points
     up (+Y). Meshes of the scene:
 
     * skinned by the skin that binds the most vertices: used as they are;
@@ -370,7 +396,12 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
         per_skin[gltf.nodes[n].skin] = per_skin.get(gltf.nodes[n].skin, 0) + vertex_count(n)
     skin_index = max(per_skin, key=lambda s: (per_skin[s], -s))
     skin = gltf.skins[skin_index]
-    joint_nodes, bind = _skin_frames(g, skin)
+    joint_nodes, bind, skin_ibm = _skin_frames(g, skin)
+    jset = set(int(n) for n in joint_nodes)
+    above = next((g.parent[int(n)] for n in joint_nodes if g.parent[int(n)] not in jset), -1)
+    frame_above = g.world(above) if above != -1 else np.eye(4)
+    bind_sv = np.linalg.svd((np.linalg.inv(frame_above) @ np.linalg.inv(skin_ibm))[:, :3, :3], compute_uv=False)
+    pose_scale = _node_pose_scale(g, joint_nodes, skin_ibm)
     jpos = {int(n): k for k, n in enumerate(joint_nodes)}
     u = np.eye(4)
     u[:3, :3] = float(scale) * up_axis_rotation(up_axis)
@@ -397,10 +428,9 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                 report.append((label_node, f"left out: skinned to skin {node.skin}, whose joints are not all in "
                                            f"the rig's skin {skin_index}"))
                 continue
-            other_joints, other_bind = _skin_frames(g, other)
-            # maps from this skin's bind space into the rig's canonical rest pose, per influence joint
-            rebind = np.stack([bind[jpos[int(j)]] @ np.linalg.inv(other_bind[k])
-                               for k, j in enumerate(other_joints)])
+            other_joints, _, other_ibm = _skin_frames(g, other)
+            # per influence joint: mesh space -> joint (this skin's IBM) -> the rig's canonical bind frame
+            rebind = np.stack([bind[jpos[int(j)]] @ other_ibm[k] for k, j in enumerate(other_joints)])
             column = np.array([jpos[int(j)] for j in other_joints])
             how = "skinned" if node.skin == skin_index else f"skinned (skin {node.skin}, re-bound)"
         else:
@@ -484,11 +514,15 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
         if len(material_faces) > 1:
             notes.append(f"{len(material_faces)} materials; the base colour of the one on the most faces "
                          f"(material {dominant}) is used for the whole mesh")
+    if abs(pose_scale - 1.0) > 1e-3:
+        notes.append(f"the file's scene graph shows the skeleton {pose_scale:.4g}x the size of its bind pose (a "
+                     f"transform above the skeleton that its inverse bind matrices do not include); bat3r uses the "
+                     f"bind pose: check asset_scale")
     info = AssetInfo(path=str(path), skin=skin_index, joints=nj, file_vertices=rig.num_vertices,
                      meshes=tuple(report), morph_targets=n_targets, morph_weights=tuple(morph_w),
                      animations=tuple(a.name or f"animation {k}" for k, a in enumerate(gltf.animations or [])),
                      scale=float(scale), up_axis=str(up_axis).upper(), texture=texture, texture_source=source,
-                     notes=tuple(notes))
+                     notes=tuple(notes), bind_scale=(float(bind_sv.min()), float(bind_sv.max())))
     return rig, info
 
 

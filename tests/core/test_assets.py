@@ -1,0 +1,171 @@
+"""Real assets: the canonical rest pose of third-party files, units and axes, the normalised asset, the body-frame
+proposal and ``bat3r asset check`` on Blender-made variants of the toy and on the shared third-party rigs."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from bat3r_core.asset_check import THRESHOLDS, check_asset
+from bat3r_core.assets import prepare_asset, propose_body_frame
+from bat3r_core.rig import RigError
+from bat3r_core.rig_io import load_rig, read_asset, save_rig_glb, up_axis_rotation
+from bat3r_core.skinning import skin
+from bat3r_core.toy import TOY_BODY_FRAME, toy_coat_texture
+from tests.assets.variants import make_variants
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "assets"
+FOX = SHARED / "fox" / "Fox.glb"
+DOG = SHARED / "dog_puppy" / "scene.gltf"
+needs_shared = pytest.mark.skipif(not FOX.is_file() or not DOG.is_file(),
+                                  reason=f"the shared third-party assets are not in {SHARED}")
+
+
+@pytest.fixture(scope="module")
+def variants(tmp_path_factory, toy_rig):
+    root = tmp_path_factory.mktemp("variants")
+    glb = save_rig_glb(toy_rig, root / "toy.glb", texture=toy_coat_texture("bay", size=256))
+    return make_variants(glb, root / "out")
+
+
+def _same_points(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest distance from a point of either set to the other set (vertex order may differ)."""
+    return float(max(cKDTree(b).query(a)[0].max(), cKDTree(a).query(b)[0].max()))
+
+
+def test_up_axis_rotation_maps_each_axis_to_plus_y():
+    for axis in ("+X", "-X", "+Y", "-Y", "+Z", "-Z"):
+        v = np.zeros(3)
+        v["XYZ".index(axis[1])] = 1.0 if axis[0] == "+" else -1.0
+        r = up_axis_rotation(axis)
+        np.testing.assert_allclose(r @ v, [0.0, 1.0, 0.0], atol=1e-12)
+        assert np.isclose(np.linalg.det(r), 1.0)
+    with pytest.raises(ValueError, match="up_axis must be one of"):
+        up_axis_rotation("up")
+
+
+@pytest.mark.blender
+def test_variants_share_the_toys_bind_pose(variants, toy_rig):
+    rest = toy_rig.rest_vertices
+    for name in ("seam_split", "flat", "unindexed", "posed_action"):
+        rig = load_rig(variants[name])
+        assert _same_points(rig.rest_vertices, rest) < 1e-5, name
+    seam = load_rig(variants["seam_split"])
+    assert seam.num_vertices > 1.5 * toy_rig.num_vertices  # really split at the new UV seams
+    assert load_rig(variants["unindexed"]).num_vertices == 3 * len(toy_rig.faces)
+    # the posed file's animation and node pose are ignored, but it has them
+    info = read_asset(variants["posed_action"])[1]
+    assert info.animations == ("Trot",)
+    # a scaled, rotated node above the armature places the bind mesh (30 degrees about the up axis, x 0.8)
+    placed = 0.8 * rest @ Rotation.from_euler("y", 30, degrees=True).as_matrix().T
+    assert _same_points(load_rig(variants["parent_node"]).rest_vertices, placed) < 1e-5
+    # centimetres: refused without asset_scale, the toy's own size with it
+    with pytest.raises(RigError, match=r"236\.\d m long .*asset_scale: 0.01"):
+        load_rig(variants["centimetres"])
+    assert _same_points(load_rig(variants["centimetres"], scale=0.01).rest_vertices, rest) < 1e-5
+
+
+@pytest.mark.blender
+def test_morph_targets_apply_at_their_default_weight(variants, toy_rig):
+    rig, info = read_asset(variants["morph"])
+    assert info.morph_targets == 1 and info.morph_weights == pytest.approx((0.6,), abs=1e-6)
+    from bat3r_core.rig_io import _Gltf
+
+    g = _Gltf(variants["morph"])
+    base = g.accessor(g.gltf.meshes[0].primitives[0].attributes.POSITION).astype(np.float64)
+    moved = np.linalg.norm(rig.rest_vertices - base, axis=1)  # the bind frames are the identity here
+    # 0.6 x 5 cm along the normals at the head joint, fading out 25 cm away; the rest of the body stays
+    assert 0.01 < moved.max() <= 0.0301 and np.median(moved) < 1e-6
+    assert _same_points(base, toy_rig.rest_vertices) < 1e-5
+
+
+@pytest.mark.blender
+def test_a_rigid_child_mesh_is_skinned_to_its_joint(variants, toy_rig):
+    rig, info = read_asset(variants["rigid_child"])
+    assert any(name == "eye" and "rigid on joint 'head'" in what for name, what in info.meshes)
+    head = rig.joint_index("head")
+    eye = np.flatnonzero(cKDTree(toy_rig.rest_vertices).query(rig.rest_vertices)[0] > 1e-4)
+    assert len(eye) == rig.num_vertices - toy_rig.num_vertices and (rig.skin_weights[eye, head] == 1.0).all()
+    theta = torch.zeros(1, rig.num_joints, 3, dtype=torch.float64)
+    theta[0, head] = torch.tensor([0.0, 0.6, 0.0])
+    out = skin(rig.tensors(dtype=torch.float64), theta)
+    g = out.joint_transforms[0, head].numpy() @ np.linalg.inv(rig.rest_transforms[head])
+    moved = rig.rest_vertices[eye] @ g[:3, :3].T + g[:3, 3]
+    np.testing.assert_allclose(out.vertices[0].numpy()[eye], moved, atol=1e-9)  # it follows the head rigidly
+
+
+@pytest.mark.blender
+def test_the_body_frame_proposal_finds_the_toys_catalog_frame(toy_rig, variants):
+    p = propose_body_frame(toy_rig)
+    assert p.as_spec() == {"origin": TOY_BODY_FRAME["origin"], "forward": list(TOY_BODY_FRAME["forward"]),
+                           "horizontal": list(TOY_BODY_FRAME["horizontal"])}
+    assert p.head_from == "joint names" and abs(p.lateral_axis[0]) > 0.999
+    # the same frame from a seam-split export
+    assert propose_body_frame(load_rig(variants["seam_split"])).as_spec() == p.as_spec()
+
+
+@needs_shared
+def test_shared_assets_load_in_metres_with_their_texture(tmp_path):
+    with pytest.raises(RigError, match=r"154\.7 m long .*centimetres: set `asset_scale: 0.01`"):
+        load_rig(FOX)
+    prepared = prepare_asset(FOX, tmp_path, scale=0.01)
+    rig = prepared.rig
+    assert rig.num_vertices == 1728 and rig.num_joints == 24
+    assert 1.5 < np.ptp(rig.rest_vertices, axis=0).max() < 1.6
+    assert prepared.info.animations == ("Survey", "Walk", "Run")
+    own = read_asset(prepared.path)[1].texture
+    assert own is not None and own.shape == prepared.info.texture.shape == (1024, 1024, 3)
+    assert np.abs(own.astype(int) - prepared.info.texture.astype(int)).max() <= 1  # PNG round trip
+    assert prepare_asset(FOX, tmp_path, scale=0.01).path == prepared.path  # cached
+    dog, info = read_asset(DOG)
+    assert dog.num_joints == 46 and info.morph_targets == 2 and len(dog.left_right_pairs) == 15
+    assert any("1.75x the size of its bind pose" in n for n in info.notes)
+    left = [dog.joint_names[a] for a, _ in dog.left_right_pairs]
+    assert all("_l_" in n for n in left)  # +X is the animal's left
+
+
+def _assert_check_passes(report):
+    assert not report.failed, report.text()
+    f = report.figures
+    assert min(f["mask_iou"]) >= THRESHOLDS["mask_iou"] and len(f["mask_iou"]) == 8
+    assert max(f["blender_vertex_error_mm"]) <= THRESHOLDS["vertex_mm"]
+    fit, rest = np.array(f["fit_vertex_error_cm"]), np.array(f["rest_vertex_error_cm"])
+    assert fit.mean() < THRESHOLDS["fit_cm"] and np.mean(fit < rest) >= THRESHOLDS["fit_beats_rest"]
+    assert report.contact_sheet.is_file()
+
+
+@pytest.mark.blender
+@pytest.mark.parametrize("name", ["seam_split", "unindexed", "centimetres", "posed_action", "parent_node", "morph",
+                                  "rigid_child"])
+def test_asset_check_passes_on_the_toy_variants(variants, name, tmp_path):
+    report = check_asset(variants[name], tmp_path, scale=0.01 if name == "centimetres" else 1.0, resolution=64,
+                         importer=name in ("seam_split", "parent_node", "posed_action"))
+    _assert_check_passes(report)
+    assert report.body_frame["horizontal"] == list(TOY_BODY_FRAME["horizontal"])
+
+
+@needs_shared
+@pytest.mark.blender
+@pytest.mark.parametrize("path, scale", [(FOX, 0.01), (DOG, 1.0)], ids=["fox", "dog_puppy"])
+def test_asset_check_passes_on_the_shared_assets(path, scale, tmp_path):
+    _assert_check_passes(check_asset(path, tmp_path, scale=scale, resolution=64))
+
+
+@needs_shared
+def test_asset_check_command_exit_codes(tmp_path):
+    cmd = [sys.executable, "-m", "bat3r_core.cli", "asset", "check", str(FOX), "--out", str(tmp_path / "a"),
+           "--no-render", "--no-fit"]
+    bad = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 1 and "[FAIL] load" in bad.stdout and "154.7 m long" in bad.stdout
+    good = subprocess.run(cmd + ["--asset-scale", "0.01"], capture_output=True, text=True, timeout=300)
+    assert good.returncode == 0, good.stdout + good.stderr
+    assert "1728 in the file, 290 welded by position" in good.stdout
+    assert "animations: 3 ['Survey', 'Walk', 'Run']" in good.stdout and "all checks passed" in good.stdout
+    assert math.isfinite(float(good.stdout.split("longest ")[1].split(" m")[0]))
