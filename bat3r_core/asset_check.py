@@ -228,6 +228,11 @@ def _importer_check(report: AssetCheckReport, source: Path, rig, info, scale: fl
     from scipy.spatial import cKDTree
 
     lo, hi = info.bind_scale
+    if info.node_pose_deg > 0.1:
+        report.add("importer cross-check", True,
+                   f"skipped: the file was saved posed ({info.node_pose_deg:.1f} degrees from its bind pose), and "
+                   f"Blender's importer takes that pose as its rest; bat3r keeps the bind pose")
+        return
     if max(abs(lo - 1.0), abs(hi - 1.0)) > 1e-3:
         report.add("importer cross-check", True,
                    f"skipped: the bind frames carry a scale of {lo:.4g}-{hi:.4g}, which Blender's importer drops "
@@ -302,6 +307,7 @@ def check_asset(path: str | os.PathLike, out_dir: str | os.PathLike | None = Non
         f"  morph targets: {info.morph_targets}" + (f", applied at their default weights {list(info.morph_weights)}"
                                                     if info.morph_targets else ""),
         f"  animations: {len(info.animations)} {list(info.animations)} (ignored: the rest pose is the bind pose)",
+        f"  saved pose: {info.node_pose_deg:.1f} degrees from the bind pose at most (ignored)",
         "  meshes:" + "".join(f"\n    {n}: {what}" for n, what in info.meshes),
         f"  texture: {info.texture_source}" + ("" if info.texture is None else f" ({info.texture.shape[1]}x"
                                                                             f"{info.texture.shape[0]})"),

@@ -24,6 +24,8 @@ _SIDE_PATTERNS = [
     (re.compile(r"^(.*)_L(_\d+)?$"), r"\1_R\2", None),
     (re.compile(r"^(.*)\.l$"), r"\1.r", None),
     (re.compile(r"^(.*)_l$"), r"\1_r", None),
+    (re.compile(r"^(.*)_l_(.*)$"), r"\1_r_\2", None),
+    (re.compile(r"^(.*)_L_(.*)$"), r"\1_R_\2", None),
     (re.compile(r"^[Ll]eft(.*)$"), r"Right\1", None),
     (re.compile(r"^(.*)[Ll]eft(.*)$"), r"\1Right\2", None),
 ]

@@ -184,6 +184,8 @@ class AssetInfo:
         texture: (H, W, 3) uint8 RGB base-colour texture of the dominant material, or None.
         texture_source: where the texture came from (``"embedded image 0"``, a file name) or why there is none.
         notes: further remarks (e.g. several materials, a mesh node transform the glTF spec ignores).
+        node_pose_deg: how far the pose the file was saved in is from its bind pose (largest joint rotation, degrees;
+            0 for a file saved at its bind pose). The rest pose never uses it.
         bind_scale: (min, max) scale of the joints' bind frames relative to the skeleton's parent node (the
             singular values of the inverse inverse-bind matrices; (1, 1) for rigid bind frames).
     """
@@ -202,6 +204,7 @@ class AssetInfo:
     texture_source: str
     notes: tuple[str, ...]
     bind_scale: tuple[float, float] = (1.0, 1.0)
+    node_pose_deg: float = 0.0
 
 
 class _Gltf:
@@ -346,13 +349,21 @@ def _skin_frames(g: _Gltf, skin: pygltflib.Skin) -> tuple[np.ndarray, np.ndarray
         raise RigError(f"{g.path}: skin '{skin.name}' has a singular inverse bind matrix") from None
 
 
-def _node_pose_scale(g: _Gltf, joints: np.ndarray, ibm: np.ndarray) -> float:
-    """Scale of the skeleton's root joint at the file's node pose relative to its bind frame (1 when the file's
-    scene graph and node pose agree with the inverse bind matrices)."""
-    roots = [k for k, n in enumerate(joints) if g.parent[int(n)] not in set(int(j) for j in joints)]
-    k = roots[0] if roots else 0
-    m = g.world(int(joints[k])) @ ibm[k]
-    return float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
+def _node_pose(g: _Gltf, joints: np.ndarray, ibm: np.ndarray) -> tuple[float, float]:
+    """How the file's node pose relates to its bind pose: (scale of the skeleton's root joint at the node pose
+    relative to its bind frame, largest angle in degrees between two joints' ``J_j @ IBM_j``).
+
+    In the bind pose every ``J_j @ IBM_j`` is the same matrix (the identity when the scene graph above the skeleton
+    is baked into the inverse bind matrices): a non-zero angle means the file was saved posed or animated.
+    """
+    jset = set(int(j) for j in joints)
+    roots = [k for k, n in enumerate(joints) if g.parent[int(n)] not in jset]
+    m = np.stack([g.world(int(n)) @ ibm[k] for k, n in enumerate(joints)])
+    ref = m[roots[0] if roots else 0]
+    scale = float(np.cbrt(abs(np.linalg.det(ref[:3, :3]))))
+    rel = np.linalg.inv(ref[:3, :3])[None] @ m[:, :3, :3]
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return scale, float(np.degrees(np.arccos(cos)).max())
 
 
 def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y") -> tuple[Rig, AssetInfo]:
@@ -401,7 +412,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     above = next((g.parent[int(n)] for n in joint_nodes if g.parent[int(n)] not in jset), -1)
     frame_above = g.world(above) if above != -1 else np.eye(4)
     bind_sv = np.linalg.svd((np.linalg.inv(frame_above) @ np.linalg.inv(skin_ibm))[:, :3, :3], compute_uv=False)
-    pose_scale = _node_pose_scale(g, joint_nodes, skin_ibm)
+    pose_scale, pose_angle = _node_pose(g, joint_nodes, skin_ibm)
     jpos = {int(n): k for k, n in enumerate(joint_nodes)}
     u = np.eye(4)
     u[:3, :3] = float(scale) * up_axis_rotation(up_axis)
@@ -522,7 +533,8 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                      meshes=tuple(report), morph_targets=n_targets, morph_weights=tuple(morph_w),
                      animations=tuple(a.name or f"animation {k}" for k, a in enumerate(gltf.animations or [])),
                      scale=float(scale), up_axis=str(up_axis).upper(), texture=texture, texture_source=source,
-                     notes=tuple(notes), bind_scale=(float(bind_sv.min()), float(bind_sv.max())))
+                     notes=tuple(notes), bind_scale=(float(bind_sv.min()), float(bind_sv.max())),
+                     node_pose_deg=pose_angle)
     return rig, info
 
 
