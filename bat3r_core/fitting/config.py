@@ -55,6 +55,15 @@ class FittingConfig:
             terms cost about 3x more per step for the 4.8K-vertex toy (docs/fitting.md).
         min_valid_points: instances with fewer inlier points are recorded with status ``too_few_points``.
         seed: seed of the random FPS start points.
+        weld_relative_tolerance: fitting runs on the rig's welded mesh: file vertices closer than this fraction
+            of the mesh extent (longest rest bounding-box side) are one vertex (``bat3r_core.topology``; 1e-6;
+            0 merges exact duplicates only). Outputs stay on the file's vertices.
+        geodesic_landmarks: landmarks of the geodesic estimates that farthest point sampling reads (512;
+            ``fitting.geodesics.LandmarkGeodesics``: memory ``L · V``, exact when the welded mesh has at most this
+            many vertices).
+        geodesic_exact_max_vertices: the repulsion term reads exact geodesics among the regulariser mesh's
+            vertices (an ``S × S`` block from Dijkstra rows of those vertices) when it has at most this many
+            (5000), else the landmark estimates.
     """
 
     steps: int = 200
@@ -85,10 +94,13 @@ class FittingConfig:
     regulariser_max_vertices: int = 1500
     min_valid_points: int = 30
     seed: int = 0
+    weld_relative_tolerance: float = 1e-6
+    geodesic_landmarks: int = 512
+    geodesic_exact_max_vertices: int = 5000
 
     def __post_init__(self) -> None:
         positive_ints = ("steps", "rotation_lr_halving_steps", "num_control_points", "repulsion_k",
-                         "repulsion_refresh_steps", "min_valid_points")
+                         "repulsion_refresh_steps", "min_valid_points", "geodesic_landmarks")
         for name in positive_ints:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -96,6 +108,9 @@ class FittingConfig:
         rmv = self.regulariser_max_vertices
         if isinstance(rmv, bool) or not isinstance(rmv, int) or rmv < 0 or 0 < rmv < 4:
             raise ConfigError(f"FittingConfig.regulariser_max_vertices must be 0 or an int >= 4, got {rmv!r}")
+        gem = self.geodesic_exact_max_vertices
+        if isinstance(gem, bool) or not isinstance(gem, int) or gem < 0:
+            raise ConfigError(f"FittingConfig.geodesic_exact_max_vertices must be an int >= 0, got {gem!r}")
         if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
             raise ConfigError(f"FittingConfig.warmup_steps must be an int >= 0, got {self.warmup_steps!r}")
         for name in ("lr_rotations", "lr_bone_scales", "lr_global", "huber_delta", "inlier_distance",
@@ -103,7 +118,7 @@ class FittingConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FittingConfig.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("weight_angle", "weight_edge", "weight_volume", "weight_repulsion", "weight_scale",
-                     "min_confidence", "repulsion_reference_length"):
+                     "min_confidence", "repulsion_reference_length", "weld_relative_tolerance"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"FittingConfig.{name} must be >= 0, got {getattr(self, name)!r}")
         if not self.warmup_factor >= 1:

@@ -8,6 +8,13 @@ paper's learning rates and schedule. Instances are independent: every loss is pe
 batch, and Adam is elementwise, so a batch gives the same numbers as fitting its instances one at a time
 (random choices are seeded by ``config.seed`` and the sample id, not the batch position).
 
+Vertices: the file rig may split vertices at UV seams or not share them at all (unindexed exports). Everything
+that needs the surface — correspondences, geodesics, control points, the initial similarity, the regulariser mesh,
+repulsion — runs on the **welded** rig (:func:`bat3r_core.topology.weld_rig`; ``FittingAsset.welded_rig``,
+``FittingAsset.welding``); control-point indices are welded vertices. What :func:`fit_batch` returns is on the
+file rig's own vertices (``posed_vertices (B, V, 3)``); file → welded lookups go through
+``welding.representative``.
+
 Frames: predicted posed points are camera-frame points relative to the object depth (docs/CONVENTIONS.md), so the
 fitted global similarity maps the canonical frame into that frame. The world of the fitted scene is the canonical
 frame (the mesh posed by θ with unit bone scales); the camera rotation is the global rotation and its translation
@@ -24,11 +31,13 @@ import torch
 from bat3r_core.metrics import rms_chamfer, umeyama
 from bat3r_core.rig import Rig
 from bat3r_core.skinning import RigTensors, axis_angle_to_matrix, forward_kinematics
+from bat3r_core.topology import Welding, weld_rig
 
 from .camera import CameraEstimate, recover_camera
 from .config import FittingConfig
 from .correspondences import VertexIndex
-from .geodesics import load_or_compute_geodesics
+from .geodesics import (DenseGeodesics, LandmarkGeodesics, SubsetGeodesics, load_or_compute_geodesic_block,
+                        load_or_compute_landmark_geodesics)
 from .losses import (MeshRegularisers, RegulariserMesh, angle_term, data_term, find_repulsion_pairs,
                      regulariser_mesh, repulsion_term, scale_term)
 from .sampling import farthest_point_sampling
@@ -47,22 +56,33 @@ class FittingAsset:
     """Everything about one rigged canonical mesh that fitting precomputes once (see :meth:`prepare`).
 
     Attributes:
-        rig: the rig. tensors: its skinning tensors on ``device``.
-        reg_mesh: the mesh of the edge/volume/repulsion terms (the rig's, or a decimated proxy).
+        rig: the file rig (V vertices; outputs are on its vertices). tensors: its skinning tensors on ``device``.
+        welded_rig: the rig on its welded mesh (Vw vertices, :func:`bat3r_core.topology.weld_rig`).
+        welding: the :class:`~bat3r_core.topology.Welding` (file vertex → welded vertex, representatives).
+        welded_tensors: skinning tensors of ``welded_rig`` on ``device``.
+        reg_mesh: the mesh of the edge/volume/repulsion terms (the welded mesh, or a decimated proxy of it; its
+            ``source_vertex`` are welded vertices).
         reg_tensors: skinning tensors of ``reg_mesh``. regularisers: its edge/volume constants.
-        geodesics: (V, V) float32 metres between rig vertices. reg_geodesics: (Vr, Vr) the same for ``reg_mesh``.
-        vertex_index: KD-tree over the rest vertices.
+        geodesics: :class:`~.geodesics.LandmarkGeodesics` over the welded vertices (farthest point sampling).
+        reg_geodesics: geodesics over the ``reg_mesh`` vertices (repulsion): an exact
+            :class:`~.geodesics.DenseGeodesics` block when ``reg_mesh`` has at most
+            ``config.geodesic_exact_max_vertices`` vertices, else the landmark estimates read through
+            ``reg_mesh.source_vertex``.
+        vertex_index: KD-tree over the welded rest vertices.
         geodesic_threshold: repulsion geodesic threshold for this asset, metres.
         left_right: (P, 2) int64 left/right joint pairs. device, dtype: of the tensors.
     """
 
     rig: Rig
     tensors: RigTensors
+    welded_rig: Rig
+    welding: Welding
+    welded_tensors: RigTensors
     reg_mesh: RegulariserMesh
     reg_tensors: RigTensors
     regularisers: MeshRegularisers
-    geodesics: np.ndarray
-    reg_geodesics: np.ndarray
+    geodesics: LandmarkGeodesics
+    reg_geodesics: DenseGeodesics | LandmarkGeodesics | SubsetGeodesics
     vertex_index: VertexIndex
     geodesic_threshold: float
     left_right: torch.Tensor
@@ -72,23 +92,35 @@ class FittingAsset:
     @staticmethod
     def prepare(rig: Rig, config: FittingConfig, cache_dir=None, device: str | torch.device = "cpu",
                 dtype: torch.dtype = torch.float32) -> "FittingAsset":
-        """Precompute (and cache, see :func:`~.geodesics.load_or_compute_geodesics`) what fitting ``rig`` needs."""
+        """Weld the rig, then precompute (and cache in ``cache_dir``, see :mod:`.geodesics`) what fitting it needs:
+        landmark geodesics, the regulariser mesh and its exact geodesic block, the KD-tree."""
         if not isinstance(rig, Rig):
             raise TypeError(f"rig must be a bat3r_core.rig.Rig, got {type(rig).__name__}")
+        if not isinstance(config, FittingConfig):
+            raise TypeError(f"config must be a FittingConfig, got {type(config).__name__}")
         device = torch.device(device)
-        geo = load_or_compute_geodesics(rig.rest_vertices, rig.faces, cache_dir)
+        welded, welding = weld_rig(rig, relative_tolerance=config.weld_relative_tolerance)
+        wv, wf = welded.rest_vertices, welded.faces
+        geo = load_or_compute_landmark_geodesics(wv, wf, cache_dir, num_landmarks=config.geodesic_landmarks)
         length = float(np.ptp(rig.rest_vertices, axis=0).max())
         pairs = np.asarray(rig.left_right_pairs, dtype=np.int64).reshape(-1, 2)
-        reg_mesh = regulariser_mesh(rig.rest_vertices, rig.faces, rig.skin_weights, config.regulariser_max_vertices)
+        reg_mesh = regulariser_mesh(wv, wf, welded.skin_weights, config.regulariser_max_vertices)
         src = reg_mesh.source_vertex
-        return FittingAsset(rig=rig, tensors=rig.tensors(dtype=dtype, device=device), reg_mesh=reg_mesh,
+        if len(src) <= config.geodesic_exact_max_vertices:
+            reg_geo = load_or_compute_geodesic_block(wv, wf, src, cache_dir)
+        elif not reg_mesh.is_proxy:
+            reg_geo = geo
+        else:
+            reg_geo = SubsetGeodesics(geo, src)
+        return FittingAsset(rig=rig, tensors=rig.tensors(dtype=dtype, device=device), welded_rig=welded,
+                            welding=welding, welded_tensors=welded.tensors(dtype=dtype, device=device),
+                            reg_mesh=reg_mesh,
                             reg_tensors=RigTensors.from_arrays(reg_mesh.rest_vertices, rig.parents,
                                                                rig.rest_transforms, reg_mesh.skin_weights,
                                                                dtype=dtype, device=device),
                             regularisers=MeshRegularisers.from_mesh(reg_mesh.rest_vertices, reg_mesh.faces,
                                                                     reg_mesh.skin_weights, dtype=dtype, device=device),
-                            geodesics=geo, reg_geodesics=np.ascontiguousarray(geo[np.ix_(src, src)]),
-                            vertex_index=VertexIndex(rig.rest_vertices),
+                            geodesics=geo, reg_geodesics=reg_geo, vertex_index=VertexIndex(wv),
                             geodesic_threshold=config.geodesic_threshold_for(length),
                             left_right=torch.as_tensor(pairs, device=device), device=device, dtype=dtype)
 
@@ -129,8 +161,9 @@ class FitResult:
         posed_vertices: (B, V, 3) float32, the unscaled articulated mesh (unit bone scales) after the global
             similarity, metres, prediction frame.
         losses: name → (B,) final value of each loss term (unweighted) and ``total`` (weighted, as optimised).
-        residual_chamfer: (B,) RMS bidirectional Chamfer between the inlier predicted posed points and
-            ``posed_vertices``, metres.
+        residual_chamfer: (B,) RMS bidirectional Chamfer between the inlier predicted posed points and the
+            distinct positions of ``posed_vertices`` (one per welded vertex, so seam copies do not count twice),
+            metres.
         inlier_ratio: (B,) inliers / points. mean_confidence: (B,) mean C of all points (NaN without confidence).
         num_points, num_inliers, num_control_points: (B,) int.
         cameras: per instance a :class:`~.camera.CameraEstimate` or None (unfitted / no pixels).
@@ -158,10 +191,9 @@ class FitResult:
 @dataclass
 class _Prepared:
     index: int
-    vertex: np.ndarray  # (n,) assigned vertex per control point
+    vertex: np.ndarray  # (n,) assigned welded vertex per control point
     target: np.ndarray  # (n, 3) predicted posed points of the control points
-    inlier_vertex: np.ndarray  # assigned vertices of all inliers
-    inlier_posed: np.ndarray
+    inlier_posed: np.ndarray  # (m, 3) predicted posed points of all inliers
 
 
 def _id_seed(sample_id: str) -> int:
@@ -206,8 +238,7 @@ def _prepare(asset: FittingAsset, inst: PointCloudInstance, config: FittingConfi
     pick = farthest_point_sampling(corr.distance[idx], corr.vertex[idx], asset.geodesics,
                                    config.num_control_points, rng)
     ctrl = idx[pick]
-    return _Prepared(index=index, vertex=corr.vertex[ctrl], target=p[ctrl], inlier_vertex=corr.vertex[idx],
-                     inlier_posed=p[idx]), "ok", "", info
+    return _Prepared(index=index, vertex=corr.vertex[ctrl], target=p[ctrl], inlier_posed=p[idx]), "ok", "", info
 
 
 def _robust_similarity(source: np.ndarray, target: np.ndarray, delta: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -298,7 +329,8 @@ def fit_batch(asset: FittingAsset, instances: list[PointCloudInstance], config: 
             for name in LOSS_NAMES:
                 out["losses"][name][k] = fitted["losses"][name][slot]
             out["num_control_points"][k] = len(prep.vertex)
-            out["residual_chamfer"][k] = rms_chamfer(prep.inlier_posed, fitted["posed_vertices"][slot])
+            out["residual_chamfer"][k] = rms_chamfer(prep.inlier_posed,
+                                                     fitted["posed_vertices"][slot][asset.welding.representative])
             cameras[k] = _camera_of(asset, instances[k], fitted["world_vertices"][slot],
                                     fitted["global_rotation"][slot], config, fit_focal)
     return FitResult(sample_id=[str(i.sample_id) for i in instances], status=statuses, reason=reasons,
@@ -311,7 +343,10 @@ _MIN_FRONT_POINTS = 8
 
 def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np.ndarray, rotation: np.ndarray,
                config: FittingConfig, fit_focal: bool) -> CameraEstimate | None:
-    """Camera of one fitted instance from its layer-0 pixels (None without pixels or intrinsics)."""
+    """Camera of one fitted instance from its layer-0 pixels (None without pixels or intrinsics).
+
+    ``world_vertices`` (V, 3) are the file rig's posed vertices; correspondences index welded vertices and read
+    them through ``welding.representative``."""
     if inst.pixels is None or inst.intrinsics is None:
         return None
     layers = np.zeros(len(inst.pixels), dtype=np.int64) if inst.layers is None else np.asarray(inst.layers)
@@ -323,7 +358,7 @@ def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np
         front = corr.inlier
     if front.sum() < 2:
         return None
-    rotated = world_vertices[corr.vertex[front]] @ rotation.T  # (n, 3) fitted points, camera orientation
+    rotated = world_vertices[asset.welding.representative[corr.vertex[front]]] @ rotation.T  # (n, 3) fitted points, camera orientation
     seed = np.random.default_rng([config.seed, 7, _id_seed(inst.sample_id)])
     return recover_camera(rotation, rotated, np.asarray(inst.pixels, dtype=np.float64)[front],
                           np.asarray(inst.intrinsics, dtype=np.float64), rng=seed, fit_focal=fit_focal,
@@ -334,13 +369,14 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     """Adam over θ, log bone scales and the global similarity for the fittable instances."""
     dev, dt = asset.device, asset.dtype
     tensors, reg, reg_tensors = asset.tensors, asset.regularisers, asset.reg_tensors
+    welded_tensors = asset.welded_tensors
     b, num_j = len(prepared), asset.rig.num_joints
     n_max = max(len(p.vertex) for p in prepared)
     vertex = np.zeros((b, n_max), dtype=np.int64)
     target = np.zeros((b, n_max, 3))
     mask = np.zeros((b, n_max))
     s0, r0, t0 = np.ones(b), np.tile(np.eye(3), (b, 1, 1)), np.zeros((b, 3))
-    rest = asset.rig.rest_vertices
+    rest = asset.welded_rig.rest_vertices
     for i, p in enumerate(prepared):
         n = len(p.vertex)
         vertex[i, :n], target[i, :n], mask[i, :n] = p.vertex, p.target, 1.0
@@ -349,7 +385,8 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     vertex_t = torch.as_tensor(vertex, device=dev)
     target_t, mask_t = torch.as_tensor(target, **to), torch.as_tensor(mask, **to)
     r0_t, t0_t, logs0_t = torch.as_tensor(r0, **to), torch.as_tensor(t0, **to), torch.as_tensor(np.log(s0), **to)
-    rest_h = torch.cat([tensors.rest_vertices, torch.ones(tensors.num_vertices, 1, **to)], 1)  # (V, 4)
+    rest_h = torch.cat([tensors.rest_vertices, torch.ones(tensors.num_vertices, 1, **to)], 1)  # (V, 4) file rig
+    welded_rest_h = torch.cat([welded_tensors.rest_vertices, torch.ones(welded_tensors.num_vertices, 1, **to)], 1)
     reg_rest_h = torch.cat([reg_tensors.rest_vertices, torch.ones(reg_tensors.num_vertices, 1, **to)], 1)
 
     theta = torch.zeros(b, num_j, 3, **to, requires_grad=True)
@@ -381,7 +418,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             m_data = _skinning_matrices(tensors, forward_kinematics(tensors, th, scales))
         else:
             scales, m_data = torch.ones_like(log_bone), m_unscaled
-        ctrl = _skin_subset(tensors, m_data, rest_h, vertex_t)  # (B, N, 3) control vertices, scaled mesh
+        ctrl = _skin_subset(welded_tensors, m_data, welded_rest_h, vertex_t)  # (B, N, 3) control vertices, scaled
         rot = axis_angle_to_matrix(omega) @ r0_t
         scale = torch.exp(logs0_t + d_logs)
         trans = t0_t + d_trans
@@ -421,7 +458,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                 log_bone.clamp_(lo, hi)
     with torch.no_grad():
         terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps)
-        verts_u = _skin_all(tensors, m_unscaled, rest_h)  # full mesh, unit bone scales
+        verts_u = _skin_all(tensors, m_unscaled, rest_h)  # the full file mesh, unit bone scales
         posed = scale[:, None, None] * verts_u @ rot.transpose(1, 2) + trans[:, None, :]
         th = theta * joint_mask[None, :, None]
     cpu = lambda t: t.detach().cpu().numpy().astype(np.float64)  # noqa: E731

@@ -7,7 +7,8 @@ cheat them); the data term on the scaled articulated mesh after the global simil
 
 Speed: for rigs with more vertices than ``FittingConfig.regulariser_max_vertices`` the edge, volume and repulsion
 terms run on a quadric-decimated proxy of the rest mesh (:func:`regulariser_mesh`) skinned with the weights of the
-nearest rig vertices; the data term and the output always use the full mesh.
+nearest rig vertices; the data term and the output always use the full mesh. Fitting passes the *welded* rest mesh
+(:mod:`bat3r_core.topology`), so vertices split at UV seams neither cut the edge graph nor repel each other.
 
 Normalisation (the paper gives weights, not normalisations; these are the choices that make the paper's weights
 act on comparable magnitudes and are documented in docs/fitting.md):
@@ -123,22 +124,30 @@ def volume_term(vertices: torch.Tensor, faces: torch.Tensor, face_bone_onehot: t
     return (((vol - rest_volumes) / volume_scale) ** 2).mean(-1)
 
 
-def find_repulsion_pairs(vertices: np.ndarray, geodesics: np.ndarray, geodesic_threshold: float,
+def find_repulsion_pairs(vertices: np.ndarray, geodesics, geodesic_threshold: float,
                          search_radius: float, k: int) -> np.ndarray:
     """Candidate repulsion pairs of one posed mesh.
 
     Pairs ``(i, j)``, ``i < j``, closer than ``search_radius`` in space and further apart than
     ``geodesic_threshold`` on the canonical surface; each vertex keeps at most its ``k`` nearest such partners.
+    Geodesics are read for the spatially close pairs only.
 
     Args:
-        vertices: (V, 3) metres (unscaled articulated mesh). geodesics: (V, V) metres.
+        vertices: (V, 3) metres (unscaled articulated mesh).
+        geodesics: a geodesic object over the same V vertices with ``pair_distances(a, b)`` (metres; e.g.
+            :class:`~.geodesics.DenseGeodesics`, :class:`~.geodesics.LandmarkGeodesics`).
     Returns:
         (P, 2) int64.
     """
+    if not callable(getattr(geodesics, "pair_distances", None)):
+        raise TypeError("geodesics must be a geodesic object with pair_distances(a, b) (e.g. "
+                        f"fitting.geodesics.DenseGeodesics), got {type(geodesics).__name__}")
+    if getattr(geodesics, "num_vertices", len(vertices)) != len(vertices):
+        raise ValueError(f"geodesics cover {geodesics.num_vertices} vertices, vertices has {len(vertices)}")
     pairs = cKDTree(vertices).query_pairs(search_radius, output_type="ndarray")
     if len(pairs) == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    pairs = pairs[geodesics[pairs[:, 0], pairs[:, 1]] > geodesic_threshold]
+    pairs = pairs[geodesics.pair_distances(pairs[:, 0], pairs[:, 1]) > geodesic_threshold]
     if len(pairs) == 0:
         return np.zeros((0, 2), dtype=np.int64)
     d = np.linalg.norm(vertices[pairs[:, 0]] - vertices[pairs[:, 1]], axis=1)

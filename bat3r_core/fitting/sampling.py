@@ -6,7 +6,9 @@ the mesh, along the surface, and off the mesh again:
     D(q_n, q_m) = ‖q_n − v_j*(n)‖ + d_geo(v_j*(n), v_j*(m)) + ‖v_j*(m) − q_m‖
 
 Farthest point sampling starts at a random point (seeded) and repeatedly adds the point whose D to the selected set
-is largest. Only geodesic rows of selected vertices are read, so a step costs O(N).
+is largest. Only geodesic distances from the selected vertices are read, so a step costs O(N). ``d_geo`` comes from
+any geodesic object of :mod:`.geodesics` (fitting passes the welded mesh's
+:class:`~.geodesics.LandmarkGeodesics`; tests pass a :class:`~.geodesics.DenseGeodesics` matrix).
 """
 from __future__ import annotations
 
@@ -15,20 +17,23 @@ import numpy as np
 __all__ = ["surface_distance", "farthest_point_sampling"]
 
 
-def surface_distance(offsets: np.ndarray, vertices: np.ndarray, geodesics: np.ndarray, n: int, m: int) -> float:
+def surface_distance(offsets: np.ndarray, vertices: np.ndarray, geodesics, n: int, m: int) -> float:
     """D(q_n, q_m) for points with ``offsets`` (N,) ``‖q − v_j*‖`` (metres) and assigned ``vertices`` (N,) int;
-    ``geodesics`` (V, V) metres. The slow, obvious form used by tests."""
-    return float(offsets[n] + geodesics[vertices[n], vertices[m]] + offsets[m])
+    ``geodesics`` a geodesic object (``pair_distances``). The slow, obvious form used by tests."""
+    d = geodesics.pair_distances(np.array([vertices[n]]), np.array([vertices[m]]))[0]
+    return float(offsets[n] + d + offsets[m])
 
 
-def farthest_point_sampling(offsets: np.ndarray, vertices: np.ndarray, geodesics: np.ndarray, num_samples: int,
+def farthest_point_sampling(offsets: np.ndarray, vertices: np.ndarray, geodesics, num_samples: int,
                             rng: np.random.Generator) -> np.ndarray:
     """Indices of ``min(num_samples, N)`` control points chosen by FPS under D.
 
     Args:
         offsets: (N,) metres, distance of each predicted canonical point to its assigned vertex.
         vertices: (N,) int, the assigned canonical vertex ``j*(n)``.
-        geodesics: (V, V) geodesic distances between canonical vertices, metres.
+        geodesics: geodesic distances between canonical vertices, metres: an object with
+            ``distances_from(source, targets)`` (:class:`~.geodesics.LandmarkGeodesics`,
+            :class:`~.geodesics.DenseGeodesics`, ...).
         num_samples: number of control points wanted (>= 1).
         rng: start-point generator (the first point is uniform over the N points).
     Returns:
@@ -40,8 +45,9 @@ def farthest_point_sampling(offsets: np.ndarray, vertices: np.ndarray, geodesics
         raise ValueError(f"offsets and vertices must both have shape (N,), got {off.shape} and {vert.shape}")
     if isinstance(num_samples, bool) or not isinstance(num_samples, (int, np.integer)) or num_samples < 1:
         raise ValueError(f"num_samples must be an int >= 1, got {num_samples!r}")
-    if geodesics.ndim != 2 or geodesics.shape[0] != geodesics.shape[1]:
-        raise ValueError(f"geodesics must be a square (V, V) matrix, got {geodesics.shape}")
+    if not callable(getattr(geodesics, "distances_from", None)):
+        raise TypeError("geodesics must be a geodesic object with distances_from(source, targets) (e.g. "
+                        f"fitting.geodesics.LandmarkGeodesics or DenseGeodesics), got {type(geodesics).__name__}")
     n = len(off)
     if n == 0:
         return np.zeros(0, dtype=np.int64)
@@ -52,7 +58,7 @@ def farthest_point_sampling(offsets: np.ndarray, vertices: np.ndarray, geodesics
     for s in range(1, k):
         c = chosen[s - 1]
         # (N,) D from the last chosen point to every point
-        d = off[c] + geodesics[vert[c], vert].astype(np.float64) + off
+        d = off[c] + geodesics.distances_from(vert[c], vert) + off
         np.minimum(best, d, out=best)
         best[chosen[:s]] = -np.inf
         chosen[s] = int(np.argmax(best))

@@ -9,7 +9,7 @@ import trimesh
 
 from bat3r_core.skinning import skin
 from bat3r_core.toy import build_toy_rig
-from bat3r_core.fitting.geodesics import geodesic_distances
+from bat3r_core.fitting.geodesics import DenseGeodesics, geodesic_distances, landmark_geodesics
 from bat3r_core.fitting.losses import (MeshRegularisers, angle_term, data_term, find_repulsion_pairs, huber,
                                        regulariser_mesh, repulsion_term, scale_term)
 
@@ -83,7 +83,7 @@ def test_volume_term_zero_at_rest_grows_with_volume_loss_and_matches_a_loop(coar
 
 def test_repulsion_zero_at_rest_and_grows_when_a_limb_goes_through_the_body(coarse):
     rig, _ = coarse
-    geo = geodesic_distances(rig.rest_vertices, rig.faces)
+    geo = DenseGeodesics(geodesic_distances(rig.rest_vertices, rig.faces))
     threshold = 0.5 * np.ptp(rig.rest_vertices, axis=0).max() / 2.7
 
     def repulsion(verts: torch.Tensor) -> float:
@@ -106,14 +106,36 @@ def test_find_repulsion_pairs_matches_brute_force():
     v = rng.uniform(0, 0.6, (150, 3))
     geo = rng.uniform(0, 1, (150, 150))
     geo = (geo + geo.T) / 2
-    got = find_repulsion_pairs(v, geo, 0.5, 0.1, k=1000)
+    got = find_repulsion_pairs(v, DenseGeodesics(geo), 0.5, 0.1, k=1000)
     d = np.linalg.norm(v[:, None] - v[None], axis=-1)
     ref = {(i, j) for i in range(150) for j in range(i + 1, 150) if d[i, j] < 0.1 and geo[i, j] > 0.5}
     assert {tuple(p) for p in got.tolist()} == ref and len(ref) > 10
-    capped = find_repulsion_pairs(v, geo, 0.5, 0.1, k=1)
+    capped = find_repulsion_pairs(v, DenseGeodesics(geo), 0.5, 0.1, k=1)
     assert 0 < len(capped) < len(ref)
     ends = np.concatenate([capped[:, 0], capped[:, 1]])
     assert len(capped) <= len(np.unique(ends))
+    with pytest.raises(TypeError, match="geodesics must be a geodesic object with pair_distances"):
+        find_repulsion_pairs(v, geo, 0.5, 0.1, k=10)
+    with pytest.raises(ValueError, match="geodesics cover 150 vertices, vertices has 20"):
+        find_repulsion_pairs(v[:20], DenseGeodesics(geo), 0.5, 0.1, k=10)
+
+
+def test_find_repulsion_pairs_under_landmark_geodesics_matches_brute_force(coarse):
+    rig, _ = coarse
+    geo = landmark_geodesics(rig.rest_vertices, rig.faces, 64)
+    posed = _posed(rig, {"thigh.L": [0.0, 0.0, -0.36], "neck.1": [2.2, 0, 0], "neck.2": [0.8, 0, 0]})[0].numpy()
+    got = find_repulsion_pairs(posed, geo, 0.4, 0.1, k=1000)
+    n = len(posed)
+    d = np.linalg.norm(posed[:, None] - posed[None], axis=-1)
+    ref = set()
+    for i in range(n):
+        for j in np.flatnonzero(d[i, i + 1:] < 0.1) + i + 1:
+            # the landmark estimate, written out: through the landmark nearest to either end
+            via_i = geo.offset[i] + geo.rows[geo.nearest[i], j]
+            via_j = geo.offset[j] + geo.rows[geo.nearest[j], i]
+            if min(float(via_i), float(via_j)) > 0.4:
+                ref.add((i, int(j)))
+    assert {tuple(p) for p in got.tolist()} == ref and len(ref) > 10
 
 
 def test_angle_scale_data_terms():
