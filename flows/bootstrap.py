@@ -76,7 +76,7 @@ def _stage_configs(settings: RunSettings, seed: int) -> dict[str, Any]:
     return {
         "plan": {"kind": kind, "n": settings.canonical_samples, "seed": seed, "resolution": settings.image_size,
                  "shard_size": settings.shard_size, "body_frame": settings.body_frame,
-                 "prior": to_mapping(settings.camera_prior), "num_textures": len(settings.assets.textures),
+                 "prior": to_mapping(settings.camera_prior), "num_textures": settings.assets.num_textures,
                  "num_envmaps": len(settings.assets.envmaps)},
         "render": {"render": to_mapping(settings.render), "assets": to_mapping(settings.assets)},
         "features": to_mapping(settings.features),
@@ -88,7 +88,7 @@ def _stage_configs(settings: RunSettings, seed: int) -> dict[str, Any]:
                 "geodesic_cache": str(settings.layout.storage_root / "_cache" / "geodesics")},
         "plan_views": {"augment": {"camera_prior": to_mapping(settings.camera_prior),
                                    "width": settings.image_size, "height": settings.image_size,
-                                   "num_textures": len(settings.assets.textures),
+                                   "num_textures": settings.assets.num_textures,
                                    "num_envmaps": len(settings.assets.envmaps),
                                    "augment": not settings.ablations.no_view_augmentation},
                        "body_frame": settings.body_frame, "seed": seed},
