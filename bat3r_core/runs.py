@@ -37,7 +37,9 @@ from bat3r_core import shards
 
 __all__ = ["ITERATION_STAGES", "RUN_STAGES", "RunLayout", "code_version", "stage_code_version", "write_manifest",
            "read_manifest", "shard_record", "ShardFailure", "FailureSummary", "TooManyFailedShards",
-           "apply_failure_policy", "prune_shards"]
+           "apply_failure_policy", "prune_shards", "folder_record", "DROP_WARN_FRACTION", "DROP_HINTS",
+           "STAGE_NOUNS", "DropReason", "SampleDrops", "summarize_drops", "SampleNeed", "training_need",
+           "TooFewSamples", "require_samples"]
 
 ITERATION_STAGES = ("infer", "fit", "plan", "render", "features", "train", "test_infer", "evaluate")
 """Stage folders inside ``iter-NN/``, in data-flow order."""
@@ -263,8 +265,10 @@ def shard_record(stage: str, index: int, paths: shards.ShardPaths) -> dict[str, 
     """The small record a task returns for a shard it wrote (JSON-serialisable; no arrays).
 
     Keys: ``stage, index, parquet, npz`` (``""`` when the shard has no npz), ``content_hash``
-    (``shards.content_hash`` of its files), ``n_rows``, ``n_ok``, ``n_failed`` and ``failed_samples`` (at most
-    20 ``[sample_id, status, reason]`` of the rows whose status is not ``"ok"``).
+    (``shards.content_hash`` of its files), ``n_rows``, ``n_ok``, ``n_failed``, ``failed_samples`` (at most
+    20 ``[sample_id, status, reason]`` of the rows whose status is not ``"ok"``), ``status_counts``
+    (``{status: rows}`` of those rows) and ``status_examples`` (``{status: [sample_id, reason]}``, the first row
+    of each status) — what :func:`summarize_drops` reads.
     """
     if not paths.complete:
         raise FileNotFoundError(f"shard {paths.parquet} does not exist or is incomplete")
@@ -276,8 +280,40 @@ def shard_record(stage: str, index: int, paths: shards.ShardPaths) -> dict[str, 
         "stage": stage, "index": int(index), "parquet": str(paths.parquet),
         "npz": str(paths.npz) if paths.npz.is_file() else "",
         "content_hash": shards.content_hash(files), "n_rows": table.num_rows, "n_ok": int(ok.sum()),
-        "n_failed": len(bad), "failed_samples": bad[:_MAX_LISTED_FAILURES],
+        "n_failed": len(bad), "failed_samples": bad[:_MAX_LISTED_FAILURES], **_status_details(bad),
     }
+
+
+def _status_details(bad: list[list]) -> dict[str, Any]:
+    """``status_counts`` ({status: rows}) and ``status_examples`` ({status: [sample_id, reason]}, the first row of
+    each status) of the not-ok rows ``[[sample_id, status, reason, ...], ...]``."""
+    counts: dict[str, int] = {}
+    examples: dict[str, list] = {}
+    for row in bad:
+        counts[row[1]] = counts.get(row[1], 0) + 1
+        examples.setdefault(row[1], [row[0], row[2]] + list(row[3:4]))
+    return {"status_counts": counts, "status_examples": examples}
+
+
+def folder_record(stage: str, folder: str | os.PathLike) -> dict[str, Any]:
+    """One record for all complete shards of ``folder`` (e.g. the hidden render shards of a generated collection):
+    like :func:`shard_record`, with ``parquet`` the first shard, ``files`` every shard file, ``n_shards`` and
+    ``failed_samples`` entries ``[sample_id, status, reason, shard parquet]``. Raises FileNotFoundError when the
+    folder has no complete shard."""
+    indices = shards.list_shards(folder)
+    if not indices:
+        raise FileNotFoundError(f"{folder}: no complete shard (part-NNNNN.parquet)")
+    records = [shard_record(stage, i, shards.shard_paths(folder, i)) for i in indices]
+    bad = []
+    for rec in records:
+        table = pq.read_table(rec["parquet"], columns=["sample_id", "status", "reason"])
+        bad += [[r["sample_id"], r["status"], r["reason"], rec["parquet"]]
+                for r, good in zip(table.to_pylist(), shards.ok_mask(table)) if not good]
+    files = [f for rec in records for f in [rec["parquet"]] + ([rec["npz"]] if rec["npz"] else [])]
+    return {"stage": stage, "parquet": records[0]["parquet"], "files": files,
+            "content_hash": shards.content_hash(files), "n_shards": len(records),
+            "n_rows": sum(r["n_rows"] for r in records), "n_ok": sum(r["n_ok"] for r in records),
+            "n_failed": len(bad), "failed_samples": bad[:_MAX_LISTED_FAILURES], **_status_details(bad)}
 
 
 def prune_shards(folder: str | os.PathLike, keep: Iterable[int]) -> list[int]:
@@ -358,3 +394,218 @@ def apply_failure_policy(stage: str, n_total: int, failures: Iterable[ShardFailu
     if summary.failed_fraction > summary.max_failed_fraction:
         raise TooManyFailedShards(summary)
     return summary
+
+
+# ------------------------------------------------------------------------------------------- dropped samples
+
+DROP_WARN_FRACTION = 0.05
+"""A stage that marks more than this fraction of its samples not ok is reported: a warning in the flow log, a
+markdown artifact ``…-<stage>-drops`` and a section of the iteration summary (docs/orchestration.md)."""
+_TOP_REASONS = 3
+
+DROP_HINTS = {
+    "mask_mismatch": "run `bat3r asset check {category}` (the asset Blender renders and the rig bat3r ray-casts "
+                     "disagree: scale, up axis, skin)",
+    "bad_texture": "check categories.{category}.textures in the data catalog",
+    "bad_envmap": "check categories.{category}.environment_maps in the data catalog",
+    "bad_job": "the render jobs hold non-finite poses or cameras (see the plan stage)",
+    "failed": "the render worker failed on these jobs (the reason quotes its log)",
+    "empty": "the object is not in view: check the camera prior and the asset's scale",
+    "bad_image": "fix or remove these files of the collection (docs/collections.md, \"Bad files\")",
+    "missing_mask": "give every image a mask (docs/collections.md, \"Bad files\")",
+    "bad_mask": "fix these masks (docs/collections.md, \"Bad files\")",
+    "empty_mask": "these masks have no foreground pixel (docs/collections.md, \"Bad files\")",
+    "size_mismatch": "mask and image sizes differ (docs/collections.md, \"Bad files\")",
+}
+"""What to do about the most frequent drop status (``{category}`` is filled in); used in the failure message."""
+
+STAGE_NOUNS = {"collection": "images", "test": "images", "collection-images": "renders", "test-images": "renders",
+               "generated_collection": "renders",
+               "render": "renders", "features": "feature rows", "infer": "predictions",
+               "test_infer": "predictions", "fit": "fits", "plan": "render jobs", "evaluate": "evaluation rows"}
+"""What a stage's samples are called in reports (default ``samples``)."""
+
+
+@dataclass(frozen=True)
+class DropReason:
+    """One status of the samples a stage dropped: how many rows, and one of them (its reason, sample and shard)."""
+
+    status: str
+    count: int
+    reason: str
+    sample_id: str
+    shard: str
+
+
+@dataclass(frozen=True)
+class SampleDrops:
+    """How many samples a stage kept and dropped, by status (most frequent first).
+
+    Attributes:
+        label: where, e.g. ``iteration 0 render`` or ``collection``. stage: the stage name. noun: what the samples
+        are (``renders``). n_total / n_ok: samples the stage wrote / with status ok. reasons: the drop statuses.
+    """
+
+    label: str
+    stage: str
+    noun: str
+    n_total: int
+    n_ok: int
+    reasons: tuple[DropReason, ...] = ()
+
+    @property
+    def n_dropped(self) -> int:
+        return self.n_total - self.n_ok
+
+    @property
+    def fraction(self) -> float:
+        return self.n_dropped / self.n_total if self.n_total else 0.0
+
+    def exceeds(self, threshold: float = DROP_WARN_FRACTION) -> bool:
+        """True when more than ``threshold`` of the samples were dropped."""
+        return self.n_dropped > 0 and self.fraction > threshold
+
+    def headline(self) -> str:
+        """``iteration 0 render: 25 of 32 renders dropped (78.1 %)``."""
+        return (f"{self.label}: {self.n_dropped} of {self.n_total} {self.noun} dropped "
+                f"({100 * self.fraction:.1f} %)")
+
+    def reasons_text(self, top: int = _TOP_REASONS) -> str:
+        """``mask_mismatch ×25 (Blender mask and … IoU 0.512 < 0.8)`` for the ``top`` statuses, ``; ``-joined."""
+        parts = [f"{r.status} ×{r.count} ({r.reason})" if r.reason else f"{r.status} ×{r.count}"
+                 for r in self.reasons[:top]]
+        more = len(self.reasons) - top
+        return "; ".join(parts + ([f"{more} other status(es)"] if more > 0 else []))
+
+    def example(self) -> str:
+        """``e.g. sample canonical-000003 in …/part-00000.parquet`` (the most frequent status), or ``""``."""
+        r = self.reasons[0] if self.reasons else None
+        if r is None or not (r.sample_id or r.shard):
+            return ""
+        return f"e.g. sample {r.sample_id} in {r.shard}" if r.sample_id else f"e.g. in {r.shard}"
+
+    def describe(self) -> str:
+        """One line: headline, the top reasons and an example file."""
+        if not self.n_dropped:
+            return f"{self.label}: {self.n_ok} {self.noun}, none dropped"
+        example = self.example()
+        return f"{self.headline()}: {self.reasons_text()}" + (f" — {example}" if example else "")
+
+    def markdown(self, heading: bool = True) -> str:
+        """A markdown table (status, count, share, representative reason, example sample and shard) after a bold
+        headline (``heading``)."""
+        lines = [f"**{self.headline()}**; {self.n_ok} kept.", ""] if heading else []
+        lines += ["| status | samples | share | representative reason | example sample | shard |",
+                  "|---|---|---|---|---|---|"]
+        for r in self.reasons:
+            share = 100.0 * r.count / self.n_total if self.n_total else 0.0
+            cell = r.reason.replace("|", "\\|").replace("\n", " ")
+            lines.append(f"| {r.status} | {r.count} | {share:.1f} % | {cell} | `{r.sample_id}` | `{r.shard}` |")
+        return "\n".join(lines)
+
+    def to_mapping(self) -> dict[str, Any]:
+        """JSON form (flow parameters, records); :meth:`from_mapping` reads it back."""
+        return {"label": self.label, "stage": self.stage, "noun": self.noun, "n_total": self.n_total,
+                "n_ok": self.n_ok, "reasons": [dict(vars(r)) for r in self.reasons]}
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any]) -> "SampleDrops":
+        return cls(str(data["label"]), str(data["stage"]), str(data["noun"]), int(data["n_total"]),
+                   int(data["n_ok"]), tuple(DropReason(**r) for r in data.get("reasons", ())))
+
+
+def summarize_drops(stage: str, records: Iterable[Mapping[str, Any]], label: str | None = None,
+                    noun: str | None = None) -> SampleDrops:
+    """Add up the samples a stage's task records kept and dropped.
+
+    records: task records; shard records (:func:`shard_record`, :func:`folder_record`) count their rows
+    (``n_rows``, ``n_ok``, ``status_counts``, ``status_examples``; records without the last two fall back on
+    ``failed_samples``); job-planning records without rows count their ``n_jobs`` as kept samples; other records
+    (training, metrics) count nothing. label: where (default: ``stage``); noun: default ``STAGE_NOUNS``.
+    Reasons are sorted by count (then status); each keeps the first example met, in record order.
+    """
+    n_total = n_ok = 0
+    counts: dict[str, int] = {}
+    examples: dict[str, DropReason] = {}
+    for rec in records:
+        if "n_rows" not in rec:
+            jobs = int(rec.get("n_jobs", 0))
+            n_total, n_ok = n_total + jobs, n_ok + jobs
+            continue
+        n_total += int(rec["n_rows"])
+        n_ok += int(rec["n_ok"])
+        failed = [list(f) for f in rec.get("failed_samples", ())]
+        rec_counts = rec.get("status_counts")
+        if rec_counts is None:
+            rec_counts = {}
+            for f in failed:
+                rec_counts[f[1]] = rec_counts.get(f[1], 0) + 1
+        rec_examples = {k: list(v) for k, v in (rec.get("status_examples") or {}).items()}
+        for f in failed:
+            rec_examples.setdefault(f[1], [f[0], f[2]] + f[3:4])
+        for status, count in rec_counts.items():
+            counts[status] = counts.get(status, 0) + int(count)
+            if status not in examples:
+                ex = rec_examples.get(status, ["", ""])
+                shard = ex[2] if len(ex) > 2 else str(rec.get("parquet", ""))
+                examples[status] = DropReason(status, 0, str(ex[1]), str(ex[0]), shard)
+    reasons = tuple(DropReason(s, c, examples[s].reason, examples[s].sample_id, examples[s].shard)
+                    for s, c in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+    return SampleDrops(label or stage, stage, noun or STAGE_NOUNS.get(stage, "samples"), n_total, n_ok, reasons)
+
+
+@dataclass(frozen=True)
+class SampleNeed:
+    """What the next stage needs: at least ``n`` samples for ``consumer`` (``training``), because ``why``."""
+
+    n: int
+    consumer: str
+    why: str
+
+
+def training_need(batch_size: int, world_size: int | None = None) -> SampleNeed:
+    """Training needs one full batch per process: ``batch_size × world_size`` samples. world_size: default the
+    torchrun environment's ``WORLD_SIZE`` (1 without it), as the trainer reads it."""
+    world = int(os.environ.get("WORLD_SIZE", "1")) if world_size is None else int(world_size)
+    if batch_size < 1 or world < 1:
+        raise ValueError(f"batch_size and world_size must be >= 1, got {batch_size}, {world}")
+    return SampleNeed(batch_size * world, "training",
+                      f"batch_size × world_size = {batch_size} × {world}" if world > 1 else "batch_size × world_size")
+
+
+class TooFewSamples(RuntimeError):
+    """A stage ended with fewer samples than the next stage needs; the message says where they were lost."""
+
+    def __init__(self, message: str, drops: SampleDrops | None = None, need: SampleNeed | None = None) -> None:
+        super().__init__(message)  # args == (message,): pickles and unpickles (Prefect states, Dask)
+        self.drops, self.need = drops, need
+
+
+def require_samples(drops: SampleDrops, need: SampleNeed, upstream: Iterable[SampleDrops] = (),
+                    category: str = "") -> SampleDrops:
+    """Stop the run unless the stage kept at least ``need.n`` samples.
+
+    The message names the stage, how many of its samples it dropped and why (the top statuses with a
+    representative reason and an example file), what to do about the most frequent status (``DROP_HINTS``), what
+    the next stage needs, and the upstream stages (``upstream``) that dropped samples, e.g. ``iteration 0 render:
+    25 of 32 renders dropped (78.1 %): mask_mismatch ×25 (…) — run `bat3r asset check toy` …; training needs at
+    least 8 (batch_size × world_size), 7 left — e.g. sample … in …``. Returns ``drops`` when there are enough;
+    raises :class:`TooFewSamples` otherwise.
+    """
+    if drops.n_ok >= need.n:
+        return drops
+    if drops.n_dropped:
+        head = f"{drops.headline()}: {drops.reasons_text()}"
+        top = drops.reasons[0].status if drops.reasons else ""
+        if top in DROP_HINTS:
+            head += " — " + DROP_HINTS[top].format(category=category or "<category>")
+    else:
+        head = f"{drops.label}: {drops.n_ok} {drops.noun}, none dropped"
+    msg = f"{head}; {need.consumer} needs at least {need.n} ({need.why}), {drops.n_ok} left"
+    example = drops.example()
+    if example:
+        msg += f" ({example})"
+    lost = [u for u in upstream if u.n_dropped]
+    if lost:
+        msg += ". Dropped before: " + "; ".join(u.describe() for u in lost)
+    raise TooFewSamples(msg, drops, need)

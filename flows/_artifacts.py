@@ -6,7 +6,7 @@ from typing import Any, Sequence
 
 from prefect.artifacts import create_markdown_artifact, create_table_artifact
 
-from bat3r_core.runs import RunLayout
+from bat3r_core.runs import DROP_WARN_FRACTION, RunLayout, SampleDrops
 from flows._fanout import StageResult, artifact_key
 
 __all__ = ["summary_markdown", "publish_iteration_artifacts", "METRIC_COLUMNS"]
@@ -42,12 +42,34 @@ def _stage_line(r: StageResult) -> str:
     return "; ".join(parts)
 
 
+def _drops_section(drops: Sequence[SampleDrops]) -> list[str]:
+    """The stages that dropped more than ``DROP_WARN_FRACTION`` of their samples: one line each (counts, top
+    reasons, an example file) and its table."""
+    heavy = [d for d in drops if d.exceeds(DROP_WARN_FRACTION)]
+    if not heavy:
+        return []
+    lines = ["", f"## Dropped samples (stages that dropped more than {100 * DROP_WARN_FRACTION:g} %)", ""]
+    for d in heavy:
+        lines += [f"- {d.describe()}", "", d.markdown(heading=False), ""]
+    return lines
+
+
 def summary_markdown(layout: RunLayout, iteration: int, stages: Sequence[StageResult],
-                     metrics_rows: Sequence[dict], notes: Sequence[str] = ()) -> str:
+                     metrics_rows: Sequence[dict], notes: Sequence[str] = (),
+                     data_drops: Sequence[SampleDrops] = (), stopped: str | None = None) -> str:
     """The markdown summary of one iteration: what each stage did (cache hits, failed shards with their reasons,
-    skipped samples), the metrics rows of this iteration, and a link to ``report.html``."""
+    skipped samples, stages that dropped more than ``DROP_WARN_FRACTION`` of their samples), the metrics rows of
+    this iteration, and a link to ``report.html``.
+
+    data_drops: the run data's stages (collection and test split preparation; iteration 0's summary lists them).
+    stopped: the error that stopped the iteration, for the summary of an iteration that did not finish.
+    """
     lines = [f"# {layout.category} / {layout.run_name}: iteration {iteration}", ""]
+    if stopped:
+        lines += ["**Stopped:** " + stopped.replace("\n", " "), ""]
+    lines += [f"- run data: {d.describe()}" for d in data_drops]
     lines += [f"- {_stage_line(r)}" for r in stages]
+    lines += _drops_section([*data_drops, *(r.drops for r in stages)])
     failures = [(r.stage, f) for r in stages for f in r.summary.failures]
     if failures:
         lines += ["", "## Failed shards (after retries)", ""]
@@ -69,13 +91,15 @@ def summary_markdown(layout: RunLayout, iteration: int, stages: Sequence[StageRe
 
 
 def publish_iteration_artifacts(layout: RunLayout, iteration: int, stages: Sequence[StageResult],
-                                metrics_rows: Sequence[dict], notes: Sequence[str] = ()) -> None:
+                                metrics_rows: Sequence[dict], notes: Sequence[str] = (),
+                                data_drops: Sequence[SampleDrops] = (), stopped: str | None = None) -> None:
     """Create the run's metrics table artifact (all iterations so far; none while ``metrics.parquet`` is empty) and
-    this iteration's markdown summary."""
+    this iteration's markdown summary (``summary_markdown``)."""
     if metrics_rows:
         create_table_artifact(table=[{c: r.get(c) for c in METRIC_COLUMNS} for r in metrics_rows],
                               key=artifact_key(layout.category, layout.run_name, "metrics"),
                               description=f"metrics.parquet of {layout.root}")
-    create_markdown_artifact(markdown=summary_markdown(layout, iteration, stages, metrics_rows, notes),
+    create_markdown_artifact(markdown=summary_markdown(layout, iteration, stages, metrics_rows, notes, data_drops,
+                                                       stopped),
                              key=artifact_key(layout.category, layout.run_name, f"iter-{iteration:02d}-summary"),
                              description=f"iteration {iteration} of {layout.run_name}")

@@ -1,9 +1,11 @@
-"""Fan a stage task out over shards: progress artifact, cache-integrity check, failed-shard policy.
+"""Fan a stage task out over shards: progress artifact, cache-integrity check, failed-shard policy, dropped samples.
 
 ``run_stage`` submits one task per call, updates a Prefect progress artifact as tasks finish, recomputes (with
 ``refresh_cache``) any cached record whose files are gone or changed, collects the shards whose task failed after
 its retries, and applies ``bat3r_core.runs.apply_failure_policy``: the stage continues when the failed fraction is
-at most the limit (the failures are returned for the summary), else ``TooManyFailedShards`` stops the flow.
+at most the limit (the failures are returned for the summary), else ``TooManyFailedShards`` stops the flow. When
+the stage's records mark more than ``bat3r_core.runs.DROP_WARN_FRACTION`` of its samples not ok, it logs a warning
+and publishes a markdown artifact ``<progress key>-drops`` (``bat3r_core.runs.summarize_drops``).
 """
 from __future__ import annotations
 
@@ -15,14 +17,15 @@ from typing import Any, Mapping, Sequence
 from prefect import Task
 from prefect.client.orchestration import get_client
 from prefect.exceptions import ObjectNotFound
-from prefect.artifacts import create_progress_artifact, update_progress_artifact
+from prefect.artifacts import create_markdown_artifact, create_progress_artifact, update_progress_artifact
 from prefect.futures import as_completed
 from prefect.logging import get_run_logger
 
-from bat3r_core.runs import FailureSummary, ShardFailure, apply_failure_policy
+from bat3r_core.runs import (DROP_WARN_FRACTION, FailureSummary, SampleDrops, ShardFailure, apply_failure_policy,
+                             summarize_drops)
 from tasks._cache import record_is_intact
 
-__all__ = ["StageResult", "run_stage", "artifact_key"]
+__all__ = ["StageResult", "run_stage", "report_drops", "artifact_key"]
 
 
 def artifact_key(*parts: Any) -> str:
@@ -38,6 +41,7 @@ class StageResult:
     records: the task records of the shards that succeeded, in call order. failures: the failed-shard summary.
     cached: how many records came from the cache (state ``Cached``) and were intact. recomputed: cached records
     whose files had changed or vanished and were recomputed. states: final state name per call (call order).
+    label: where the stage ran, for reports (``iteration 0 render``; default: the stage name).
     """
 
     stage: str
@@ -46,6 +50,12 @@ class StageResult:
     cached: int
     recomputed: int
     states: tuple[str, ...] = field(default=())
+    label: str = ""
+
+    @property
+    def drops(self) -> SampleDrops:
+        """The samples the stage's records kept and dropped (``bat3r_core.runs.summarize_drops``)."""
+        return summarize_drops(self.stage, self.records, self.label or self.stage)
 
 
 def _label(call: Mapping[str, Any], position: int) -> str:
@@ -68,13 +78,24 @@ def _attempts(future: Any, wait_s: float = 30.0) -> int | None:
     return None
 
 
+def report_drops(result: StageResult, artifact: str) -> SampleDrops:
+    """Warn (flow log) and publish the markdown artifact ``artifact`` when ``result`` dropped more than
+    ``DROP_WARN_FRACTION`` of its samples. Returns the stage's ``SampleDrops``."""
+    drops = result.drops
+    if drops.exceeds(DROP_WARN_FRACTION):
+        get_run_logger().warning("%s", drops.describe())
+        create_markdown_artifact(markdown=drops.markdown(), key=artifact, description=drops.headline())
+    return drops
+
+
 def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], *, progress_key: str,
-              max_failed_fraction: float) -> StageResult:
+              max_failed_fraction: float, label: str | None = None) -> StageResult:
     """Run ``stage_task(**call)`` for every call concurrently (on the flow's task runner).
 
     calls: keyword arguments per task (with an ``index`` for shard tasks, used in labels). progress_key: the
-    artifact key of this stage's progress bar. Returns a ``StageResult``; raises ``TooManyFailedShards`` when the
-    failed fraction exceeds ``max_failed_fraction``.
+    artifact key of this stage's progress bar (dropped samples: ``<progress_key>-drops``). label: where the stage
+    runs, for messages (``iteration 0 render``; default: ``stage``). Returns a ``StageResult``; raises
+    ``TooManyFailedShards`` when the failed fraction exceeds ``max_failed_fraction``.
     """
     logger = get_run_logger()
     calls = list(calls)
@@ -89,7 +110,7 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
     done = 0
     for fut in as_completed(futures):
         i = position[id(fut)]
-        label = _label(calls[i], i)
+        shard = _label(calls[i], i)
         current = fut
         current.wait()
         try:
@@ -98,7 +119,7 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
                 if record_is_intact(record):
                     cached += 1
                 else:
-                    logger.warning("%s %s: cached result's files changed or vanished; recomputing", stage, label)
+                    logger.warning("%s %s: cached result's files changed or vanished; recomputing", stage, shard)
                     current = stage_task.with_options(refresh_cache=True).submit(**calls[i])
                     current.wait()
                     record = current.result()
@@ -107,8 +128,8 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
         except Exception as exc:  # the task failed after its retries: report the shard, apply the policy
             attempts = _attempts(current)
             tries = f"after {attempts} attempt(s)" if attempts is not None else "after its retries"
-            failures.append(ShardFailure(label, f"{type(exc).__name__}: {exc} ({tries})"))
-            logger.error("%s %s failed (%s): %s", stage, label, tries, exc)
+            failures.append(ShardFailure(shard, f"{type(exc).__name__}: {exc} ({tries})"))
+            logger.error("%s %s failed (%s): %s", stage, shard, tries, exc)
         states[i] = current.state.name
         done += 1
         update_progress_artifact(progress_id, 100.0 * done / max(len(calls), 1),
@@ -116,5 +137,7 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
     summary = apply_failure_policy(stage, len(calls), sorted(failures, key=lambda f: f.label), max_failed_fraction)
     if failures:
         logger.warning("%s", summary.describe())
-    return StageResult(stage, tuple(records[i] for i in sorted(records)), summary, cached, recomputed,
-                       tuple(states[i] for i in range(len(calls))))
+    result = StageResult(stage, tuple(records[i] for i in sorted(records)), summary, cached, recomputed,
+                         tuple(states[i] for i in range(len(calls))), label or stage)
+    report_drops(result, f"{progress_key}-drops")
+    return result

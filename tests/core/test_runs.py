@@ -163,3 +163,90 @@ def test_prune_shards_removes_only_unplanned_indices(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["part-00000.npz", "part-00000.parquet",
                                                           "part-00002.npz", "part-00002.parquet"]
     assert runs.prune_shards(tmp_path / "missing", keep=[]) == []
+
+
+def _render_rows(statuses):
+    reasons = {"ok": "", "mask_mismatch": "Blender mask and ray-cast occupancy disagree (IoU 0.412 < 0.8)",
+               "failed": "the render worker crashed twice on this job"}
+    return [{"sample_id": f"c{i:02d}", "status": s, "reason": reasons[s]} for i, s in enumerate(statuses)]
+
+
+def test_drops_are_counted_over_shards_with_their_top_reason_and_an_example(tmp_path):
+    # shard 0: 25 mismatches and 1 crash in 30 rows (more than the 20 rows failed_samples lists); shard 1: 2 ok
+    p0 = shards.write_shard(tmp_path, 0, _render_rows(["ok"] * 4 + ["mask_mismatch"] * 25 + ["failed"]),
+                            {"x": np.zeros(30)})
+    p1 = shards.write_shard(tmp_path, 1, _render_rows(["ok", "ok"]), {"x": np.zeros(2)})
+    records = [runs.shard_record("render", 0, p0), runs.shard_record("render", 1, p1)]
+    assert records[0]["status_counts"] == {"mask_mismatch": 25, "failed": 1}
+    assert records[0]["status_examples"]["failed"] == ["c29", "the render worker crashed twice on this job"]
+    drops = runs.summarize_drops("render", records, "iteration 0 render")
+    assert (drops.n_total, drops.n_ok, drops.n_dropped, drops.noun) == (32, 6, 26, "renders")
+    assert [(r.status, r.count, r.sample_id) for r in drops.reasons] == [("mask_mismatch", 25, "c04"),
+                                                                          ("failed", 1, "c29")]
+    assert drops.reasons[0].shard == str(p0.parquet) and drops.exceeds()
+    assert drops.describe() == (
+        "iteration 0 render: 26 of 32 renders dropped (81.2 %): mask_mismatch ×25 (Blender mask and ray-cast "
+        "occupancy disagree (IoU 0.412 < 0.8)); failed ×1 (the render worker crashed twice on this job) — e.g. "
+        f"sample c04 in {p0.parquet}")
+    table = drops.markdown()
+    assert "| mask_mismatch | 25 | 78.1 % | Blender mask and ray-cast occupancy disagree (IoU 0.412 < 0.8) | " \
+           f"`c04` | `{p0.parquet}` |" in table and "| failed | 1 | 3.1 % |" in table
+    assert runs.SampleDrops.from_mapping(json.loads(json.dumps(drops.to_mapping()))) == drops
+    # a record written before status_counts existed falls back on its listed failed samples
+    old = {k: v for k, v in records[0].items() if k not in ("status_counts", "status_examples")}
+    fallback = runs.summarize_drops("render", [old])
+    assert fallback.n_dropped == 26 and [(r.status, r.count) for r in fallback.reasons] == [("mask_mismatch", 20)]
+    # job files count their jobs as kept; training records count nothing
+    jobs = runs.summarize_drops("plan", [{"n_jobs": 5, "files": []}, {"steps": 3}])
+    assert (jobs.n_total, jobs.n_ok, jobs.noun, jobs.exceeds()) == (5, 5, "render jobs", False)
+
+
+def test_the_warning_threshold_is_more_than_five_percent():
+    assert runs.DROP_WARN_FRACTION == 0.05
+    one = runs.SampleDrops("render", "render", "renders", 20, 19)
+    two = runs.SampleDrops("render", "render", "renders", 20, 18)
+    assert not one.exceeds() and two.exceeds() and one.exceeds(0.01)
+    assert not runs.SampleDrops("x", "x", "samples", 0, 0).exceeds()
+
+
+def test_too_few_samples_names_the_stage_the_reason_the_fix_and_the_need(tmp_path, monkeypatch):
+    p0 = shards.write_shard(tmp_path, 0, _render_rows(["ok"] * 7 + ["mask_mismatch"] * 25), {"x": np.zeros(32)})
+    drops = runs.summarize_drops("render", [runs.shard_record("render", 0, p0)], "iteration 0 render")
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    need = runs.training_need(8)
+    assert need == runs.SampleNeed(8, "training", "batch_size × world_size")
+    with pytest.raises(runs.TooFewSamples) as info:
+        runs.require_samples(drops, need, category="horse")
+    assert str(info.value) == (
+        "iteration 0 render: 25 of 32 renders dropped (78.1 %): mask_mismatch ×25 (Blender mask and ray-cast "
+        "occupancy disagree (IoU 0.412 < 0.8)) — run `bat3r asset check horse` (the asset Blender renders and the "
+        "rig bat3r ray-casts disagree: scale, up axis, skin); training needs at least 8 (batch_size × world_size), "
+        f"7 left (e.g. sample c07 in {p0.parquet})")
+    assert info.value.drops == drops and info.value.need == need
+    assert runs.require_samples(drops, runs.training_need(7)) is drops  # enough: the run goes on
+    # samples lost upstream are named too; a pickled error keeps its message (Prefect, Dask)
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    plan = runs.SampleDrops("iteration 1 plan", "plan", "render jobs", 6, 6)
+    fit = runs.SampleDrops("iteration 1 fit", "fit", "fits", 4, 2, (runs.DropReason("too_few_points", 2, "3 inlier "
+                                                                                   "points", "a", "f.parquet"),))
+    with pytest.raises(runs.TooFewSamples) as info:
+        runs.require_samples(plan, runs.training_need(4), [fit])
+    assert str(info.value) == ("iteration 1 plan: 6 render jobs, none dropped; training needs at least 8 (batch_size "
+                               "× world_size = 4 × 2), 6 left. Dropped before: iteration 1 fit: 2 of 4 fits dropped "
+                               "(50.0 %): too_few_points ×2 (3 inlier points) — e.g. sample a in f.parquet")
+    import pickle
+
+    assert str(pickle.loads(pickle.dumps(info.value))) == str(info.value)
+
+
+def test_folder_record_sums_the_shards_of_a_folder(tmp_path):
+    shards.write_shard(tmp_path, 0, _render_rows(["ok", "failed"]), {"x": np.zeros(2)})
+    p1 = shards.write_shard(tmp_path, 1, _render_rows(["mask_mismatch", "ok", "ok"]), {"x": np.zeros(3)})
+    rec = runs.folder_record("generated_collection", tmp_path)
+    assert (rec["n_rows"], rec["n_ok"], rec["n_failed"], rec["n_shards"]) == (5, 3, 2, 2)
+    assert rec["failed_samples"][1] == ["c00", "mask_mismatch", _render_rows(["mask_mismatch"])[0]["reason"],
+                                        str(p1.parquet)]
+    drops = runs.summarize_drops("collection-images", [rec], "collection images")
+    assert drops.reasons[1].shard == str(p1.parquet) and drops.noun == "renders"
+    with pytest.raises(FileNotFoundError, match="no complete shard"):
+        runs.folder_record("x", tmp_path / "empty")

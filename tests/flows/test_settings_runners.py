@@ -148,4 +148,20 @@ def test_summary_markdown_lists_failures_skips_and_metrics(tmp_path):
     assert "| 1 | test | 8 | 0 | 3.500 | 12.500 | – | 4.000 | 3.000 |" in md
     assert "| 0 | test" not in md
     assert layout.report.resolve().as_uri() in md
+    # render dropped 1 of 4 (25 % > 5 %): listed with its reason and table; train (no rows) is not
+    assert "## Dropped samples (stages that dropped more than 5 %)" in md
+    assert "- render: 1 of 4 renders dropped (25.0 %): mask_mismatch ×1 (IoU 0.5)" in md
+    assert "| mask_mismatch | 1 | 25.0 % | IoU 0.5 | `s2` |" in md
+    # a stopped iteration says why; the run data's drops come first
+    from bat3r_core.runs import DropReason, SampleDrops
+
+    data = SampleDrops("collection", "collection", "images", 10, 9,
+                       (DropReason("bad_image", 1, "image a.png is truncated", "a", "c.parquet"),))
+    stopped = summary_markdown(layout, 0, [render], [], data_drops=[data], stopped="iteration 0 render: too few")
+    assert stopped.index("**Stopped:** iteration 0 render: too few") < stopped.index("- run data: collection: 1 of "
+                                                                                     "10 images dropped (10.0 %)")
+    assert "| bad_image | 1 | 10.0 % | image a.png is truncated | `a` | `c.parquet` |" in stopped
+    quiet = StageResult("features", ({"index": 0, "n_rows": 40, "n_ok": 39, "n_failed": 1},),
+                        FailureSummary("features", 1, (), 0.1), cached=0, recomputed=0)
+    assert "Dropped samples" not in summary_markdown(layout, 0, [quiet], [])  # 2.5 %: below the threshold
     assert artifact_key("Toy", "r_1.x", "iter-01") == "toy-r-1-x-iter-01"
