@@ -48,12 +48,16 @@ class CollectionSpec:
 
     Attributes:
         kind: ``folder`` (``images/`` + ``masks/`` with matching stems), ``parquet`` (an index with
-            ``image_path``, ``mask_path``) or ``generated`` (the toy collection, synthesised on first use).
+            ``image_path``, ``mask_path``) or ``generated`` (synthesised on first use from the category's own rig:
+            posed, yawed, framed by the camera prior, textured; :func:`bat3r_core.datasets.make_collection`).
         path: the folder or Parquet index (relative to the catalog file), or where a generated collection is cached.
         n: number of images of a generated collection (0 = the run preset's size).
         seed: seed of a generated collection.
         ground_truth: folder of hidden ground truth (generated collections / test splits only; only evaluation
             reads it).
+        pose_sampler: poses of a generated collection: ``random`` (:func:`bat3r_core.poses.sample_random_poses`,
+            any rig) or ``toy_natural`` (the toy's gaits, grazing, rearing, …; the toy's joints only). Default:
+            ``toy_natural`` for the embedded toy, ``random`` for every other asset.
     """
 
     kind: Literal["folder", "parquet", "generated"]
@@ -61,6 +65,7 @@ class CollectionSpec:
     n: int = 0
     seed: int = 0
     ground_truth: str | None = None
+    pose_sampler: Literal["random", "toy_natural"] | None = None
 
 
 @dataclass(frozen=True)
@@ -401,6 +406,11 @@ def load_catalog(path: str | os.PathLike | None = None, validate_stages: bool = 
             raise ConfigError(f"categories.{name}: unknown key(s) ['name'/'catalog_dir'] (set by the loader)")
         cats[name] = from_mapping(Category, {**spec, "name": name, "catalog_dir": str(path.parent)},
                                   f"categories.{name}")
+        for split in ("collection", "test_split"):
+            cspec = getattr(cats[name], split)
+            if cspec is not None and cspec.pose_sampler is not None and cspec.kind != "generated":
+                raise ConfigError(f"categories.{name}.{split}.pose_sampler: only a generated collection samples "
+                                  f"poses (kind is {cspec.kind!r}); remove the key or set kind: generated")
     presets = raw["fitting_presets"]
     if not isinstance(presets, dict) or sorted(presets) != ["real", "synthetic"]:
         raise ConfigError(f"fitting_presets: expected exactly the presets 'synthetic' and 'real', got "

@@ -1,5 +1,5 @@
 """Render stage: one shard of render jobs → one training shard (Blender in worker subprocesses, exact labels);
-and the toy image collection."""
+and generated image collections (any category's rig, the toy's included)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -14,7 +14,7 @@ from bat3r_core.runs import shard_record
 from tasks._cache import stage_task
 from tasks._devices import gpu_slot
 
-__all__ = ["render_shard", "render_toy_collection", "asset_files"]
+__all__ = ["render_shard", "render_generated_collection", "render_toy_collection", "asset_files"]
 
 
 def asset_files(assets: Mapping[str, Any]) -> list[Path]:
@@ -43,19 +43,43 @@ def render_shard(jobs_file: str, index: int, out_dir: str, config: Mapping[str, 
     return record
 
 
-@stage_task("toy_collection", "bat3r_core.datasets", inputs=lambda p: [],
-            output=lambda p: Path(p["out_dir"]), retries=1)
-def render_toy_collection(out_dir: str, config: Mapping[str, Any]) -> dict:
-    """The toy image collection in ``out_dir`` (``images/``, ``masks/``) and its ground truth in
-    ``config["ground_truth_dir"]`` (default ``<out_dir>_ground_truth``) with
-    ``bat3r_core.datasets.ensure_toy_collection`` (reused when already there).
-    config: ``{"n", "seed", "resolution", "render": RenderConfig mapping, "ground_truth_dir": path or None}``.
-    Returns ``stage, images_dir, masks_dir, ground_truth_dir, n_images, reused, files, content_hash``."""
+def _collection_inputs(config: Mapping[str, Any]) -> list[Path]:
+    """The files a generated collection is rendered from (none for the embedded toy, which is built in code)."""
+    return asset_files({"asset": config.get("asset") or "", "textures": config.get("textures") or (),
+                        "envmaps": config.get("envmaps") or ()})
+
+
+@stage_task("generated_collection", "bat3r_core.datasets", inputs=lambda p: _collection_inputs(p["config"]),
+            output=lambda p: Path(p["out_dir"]), retries=1, task_run_name="generated-collection")
+def render_generated_collection(out_dir: str, config: Mapping[str, Any]) -> dict:
+    """A generated image collection in ``out_dir`` (``images/``, ``masks/``) and its hidden ground truth in
+    ``config["ground_truth_dir"]`` (default ``<out_dir>_ground_truth``) with ``bat3r_core.datasets.ensure_collection``
+    (reused when already there).
+
+    config: ``{"n", "seed", "resolution", "render": RenderConfig mapping, "ground_truth_dir": path or None}`` plus,
+    for any rig but the embedded toy, ``"asset"`` (the rigged GLB), ``"body_frame"``, ``"textures"`` (``[]``: the
+    asset's own texture), ``"envmaps"``, ``"prefix"``; and ``"pose_sampler"`` (``random`` / ``toy_natural``).
+    Returns ``stage, images_dir, masks_dir, ground_truth_dir, n_images, reused, files, content_hash`` and the
+    render counts of ``bat3r_core.datasets.collection_drops_record`` (``n_rows`` jobs, ``n_ok`` images kept,
+    ``n_failed``, ``failed_samples``, ``status_counts``, ``status_examples``).
+    """
     cfg = from_mapping(RenderConfig, config["render"], "render")
-    gt = config.get("ground_truth_dir")
-    col = datasets.ensure_toy_collection(out_dir, int(config["n"]), int(config["seed"]), int(config["resolution"]),
-                                         cfg, ground_truth_dir=gt)
+    extra = {k: config[k] for k in ("asset", "body_frame", "envmaps", "pose_sampler", "prefix")
+             if config.get(k) is not None}
+    if config.get("textures") is not None:
+        extra["textures"] = tuple(config["textures"])
+    if "envmaps" in extra:
+        extra["envmaps"] = tuple(extra["envmaps"])
+    col = datasets.ensure_collection(out_dir, int(config["n"]), int(config["seed"]), int(config["resolution"]),
+                                     cfg, ground_truth_dir=config.get("ground_truth_dir"), **extra)
     stamp = col.ground_truth_dir / "collection.json"
-    return {"stage": "toy_collection", "images_dir": str(col.images_dir), "masks_dir": str(col.masks_dir),
+    counts = datasets.collection_drops_record(col)
+    return {**{k: counts[k] for k in ("n_rows", "n_ok", "n_failed", "failed_samples", "status_counts",
+                                      "status_examples")},
+            "stage": "generated_collection", "images_dir": str(col.images_dir), "masks_dir": str(col.masks_dir),
             "ground_truth_dir": str(col.ground_truth_dir), "n_images": len(col.sample_ids), "reused": col.reused,
             "files": [str(stamp)], "content_hash": shards.content_hash([stamp])}
+
+
+render_toy_collection = render_generated_collection
+"""The former name of :func:`render_generated_collection` (the toy is one generated collection among others)."""

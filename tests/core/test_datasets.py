@@ -138,3 +138,49 @@ def test_toy_collection_on_disk_with_separate_ground_truth(tmp_path):
     with pytest.raises(ValueError, match="must be outside the collection folder"):
         make_toy_collection(out, 2, ground_truth_dir=out / "gt")
     assert TOY_TEST_SEED_OFFSET != 0
+
+
+def _renamed(rig):
+    """The toy with other joint names (``spine.2`` → ``Spine_2``, ``thigh.L`` → ``Thigh_L``): not the toy's rig."""
+    import dataclasses
+
+    names = tuple(n[0].upper() + n[1:].replace(".", "_") for n in rig.joint_names)
+    return dataclasses.replace(rig, name="critter", joint_names=names)
+
+
+CRITTER_FRAME = {"origin": "Spine_2", "forward": ("Spine_1", "Spine_2"), "horizontal": ("Thigh_L", "Thigh_R")}
+
+
+def test_collection_jobs_pose_any_rig_with_random_poses(toy_rig):
+    from bat3r_core.datasets import _skin, collection_jobs
+
+    rig = _renamed(toy_rig)
+    jobs, fams, verts = collection_jobs(rig, 6, seed=9, body_frame_spec=CRITTER_FRAME, resolution=32, num_textures=3,
+                                        prefix="critter")
+    theta, _ = sample_random_poses(rig, 6, 9)
+    np.testing.assert_array_equal(np.stack([j.excess_rotations for j in jobs]), theta)  # the baseline sampler
+    assert fams == ["random"] * 6 and [j.sample_id for j in jobs] == [f"critter-{i:05d}" for i in range(6)]
+    assert {j.texture_id for j in jobs} <= {0, 1, 2} and {j.envmap_id for j in jobs} == {-1}
+    for j, v in zip(jobs, verts):
+        np.testing.assert_allclose(j.global_rotation[:, 1], [0.0, 1.0, 0.0], atol=1e-12)  # a yaw about +Y
+        assert _projected_inside(j, v) == 1.0  # framed around its own posed mesh
+    posed, _ = _skin(rig, theta, np.stack([j.global_rotation for j in jobs]))
+    np.testing.assert_allclose(verts, posed)
+    assert _rows(jobs) == _rows(collection_jobs(rig, 6, 9, CRITTER_FRAME, 32, num_textures=3, prefix="critter")[0])
+    with pytest.raises(ValueError, match=r"pose_sampler 'toy_natural' poses the toy's 27 joints .* use pose_sampler "
+                                         r"'random'"):
+        collection_jobs(rig, 2, 0, CRITTER_FRAME, pose_sampler="toy_natural")
+    with pytest.raises(KeyError, match="no joint named 'spine.2'"):
+        collection_jobs(rig, 2, 0, TOY_BODY_FRAME)
+    with pytest.raises(ValueError, match=r"pose_sampler must be one of \['random', 'toy_natural'\], got 'walk'"):
+        collection_jobs(rig, 2, 0, CRITTER_FRAME, pose_sampler="walk")
+
+
+def test_make_collection_needs_an_existing_asset_and_a_body_frame(tmp_path):
+    from bat3r_core.datasets import make_collection
+
+    with pytest.raises(FileNotFoundError, match=r"asset .*missing.glb does not exist"):
+        make_collection(tmp_path / "c", 2, asset=tmp_path / "missing.glb", body_frame=CRITTER_FRAME)
+    (tmp_path / "a.glb").write_bytes(b"glTF")
+    with pytest.raises(ValueError, match=r"body_frame: a generated collection of a.glb needs the category's"):
+        make_collection(tmp_path / "c", 2, asset=tmp_path / "a.glb")
