@@ -1,19 +1,103 @@
 """The ``bat3r`` command line: the pieces of the pipeline a user runs by hand.
 
-Every subcommand is a thin wrapper over a bat3r_core function; run ``bat3r <command> --help`` for its options.
+Every subcommand is a thin wrapper over a bat3r_core function (``bat3r bootstrap`` over the ``bootstrap`` flow of
+the checkout's ``flows/``); run ``bat3r <command> --help`` for its options. Every subcommand that reads the data
+catalog takes ``--catalog PATH`` (default ``$BAT3R_CATALOG``, else ``./data_catalog.yaml``).
+
+The options of ``bat3r bootstrap`` and ``python flows/bootstrap.py`` are one definition,
+:func:`add_bootstrap_arguments`, turned into the flow's keyword arguments by :func:`bootstrap_parameters`.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
+from typing import Any
+
+__all__ = ["main", "build_parser", "add_catalog_argument", "add_bootstrap_arguments", "bootstrap_parameters",
+           "parse_overrides", "ABLATION_SWITCHES"]
+
+ABLATION_SWITCHES = {
+    "gaussian_cameras": "Normal viewpoint priors (the Student's t loc/scale per view type, no df)",
+    "no_fitting_regularisation": "mesh fitting without the angle, edge, volume, repulsion and scale terms",
+    "no_view_augmentation": "render only the estimated view of each fit",
+    "random_poses": "the random-poses baseline (iteration-0 jobs from random poses; use --iterations 0)",
+    "raw_images": "the raw-image baseline (train on the photos with their fitted pseudo-labels)",
+}
+"""The paper's ablation switches (``flows._settings.Ablations`` fields) and their help texts."""
+
+
+def add_catalog_argument(parser: argparse.ArgumentParser) -> None:
+    """``--catalog PATH``: the data catalog (default ``$BAT3R_CATALOG``, else ``./data_catalog.yaml``)."""
+    parser.add_argument("--catalog", type=Path, default=None,
+                        help="data catalog file (default: $BAT3R_CATALOG, else ./data_catalog.yaml)")
+
+
+def parse_overrides(items: list[str], parser: argparse.ArgumentParser | None = None) -> dict[str, Any]:
+    """``["train.steps=100", "run.fitting={\"steps\": 9}"]`` → ``{"train.steps": 100, ...}``: each value parsed as
+    JSON, else kept as a string. An item without ``=`` is an error naming it (``parser.error`` when given)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            message = f"--set expects KEY=VALUE, got {item!r}"
+            if parser is not None:
+                parser.error(message)
+            raise ValueError(message)
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def add_bootstrap_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of a bootstrap run (``bat3r bootstrap`` and ``python flows/bootstrap.py``)."""
+    parser.add_argument("--category", default="toy", help="catalog category (default: toy)")
+    parser.add_argument("--preset", default="tiny", help="run preset of the catalog: tiny, demo, paper (default: "
+                                                         "tiny)")
+    add_catalog_argument(parser)
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="bootstrap iterations after the canonical initialisation (default: the preset's)")
+    parser.add_argument("--run-name", default=None,
+                        help="run folder <storage root>/<category>/<run name> (default: the preset name); a rerun "
+                             "with the same name reuses every completed task")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a setting, e.g. --set train.steps=100 (value parsed as JSON, else a string; "
+                             "repeatable)")
+    for name, text in ABLATION_SWITCHES.items():
+        parser.add_argument(f"--{name.replace('_', '-')}", dest=name, action="store_true", help=text)
+    parser.add_argument("--task-runner", default="local",
+                        help="preset of deploy/task_runners.yaml (local, dask, dask-cuda, slurm) or a YAML file")
+    parser.add_argument("--max-failed-fraction", type=float, default=0.1,
+                        help="a stage continues while at most this fraction of its shards failed (default 0.1)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the sampled render jobs (default 0)")
+
+
+def bootstrap_parameters(args: argparse.Namespace, parser: argparse.ArgumentParser | None = None
+                         ) -> dict[str, Any]:
+    """The keyword arguments of the ``bootstrap`` flow from options parsed by :func:`add_bootstrap_arguments`
+    (``catalog`` as an absolute path, or None for the default)."""
+    params: dict[str, Any] = {
+        "category": args.category, "preset": args.preset, "iterations": args.iterations, "run_name": args.run_name,
+        "overrides": parse_overrides(args.overrides, parser), "task_runner": args.task_runner,
+        "max_failed_fraction": args.max_failed_fraction, "seed": args.seed,
+        "catalog": None if args.catalog is None else str(Path(args.catalog).expanduser().resolve()),
+    }
+    params.update({name: bool(getattr(args, name)) for name in ABLATION_SWITCHES})
+    return params
 
 
 def _cmd_catalog_validate(args: argparse.Namespace) -> int:
     from .catalog import ConfigError, load_catalog
 
+    if args.path is not None and args.catalog is not None and Path(args.path) != Path(args.catalog):
+        print(f"catalog validate: give the catalog once (PATH {args.path} or --catalog {args.catalog})",
+              file=sys.stderr)
+        return 2
     try:
-        catalog = load_catalog(args.path)
+        catalog = load_catalog(args.path if args.path is not None else args.catalog)
     except (ConfigError, FileNotFoundError) as e:
         print(f"invalid catalog: {e}", file=sys.stderr)
         return 2
@@ -28,6 +112,9 @@ def _cmd_catalog_validate(args: argparse.Namespace) -> int:
               f"{cat.collection.path}; fitting: {cat.fitting.preset}")
         for m in missing:
             print(f"           - needs {m}")
+        if not cat.is_generated and not missing:
+            print(f"           - before a long run: bat3r asset check {cat.resolve(cat.asset)} --category {name}"
+                  + (f" --catalog {catalog.path}" if args.catalog or args.path else ""))
         usable += not missing
     print(f"{usable}/{len(catalog.categories)} categories ready")
     return 0
@@ -46,11 +133,46 @@ def _cmd_asset_toy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_asset_check(args: argparse.Namespace) -> int:
+    from .asset_check import check_asset
+
+    scale, up_axis, body_frame, fitting = args.asset_scale, args.up_axis, None, None
+    if args.category:
+        from .catalog import BodyFrameJoints, load_catalog
+
+        catalog = load_catalog(args.catalog)
+        cat = catalog.category(args.category)
+        scale = scale if scale is not None else cat.asset_scale
+        up_axis = up_axis or cat.up_axis
+        if isinstance(cat.body_frame, BodyFrameJoints):
+            body_frame = {"origin": cat.body_frame.origin, "forward": list(cat.body_frame.forward),
+                          "horizontal": list(cat.body_frame.horizontal)}
+        fitting = catalog.fitting_config(args.category)
+    report = check_asset(args.path, args.out, scale=1.0 if scale is None else scale, up_axis=up_axis or "+Y",
+                         body_frame=body_frame, fitting_config=fitting, num_views=args.views, num_poses=args.poses,
+                         render=not args.no_render, fit=not args.no_fit)
+    print(report.text())
+    if report.contact_sheet is not None:
+        print(f"contact sheet: {report.contact_sheet}")
+    return 1 if report.failed else 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from .evaluation import evaluate_run, read_metrics
     from .report import build_report
 
-    run = Path(args.run)
+    if (args.run is None) == (args.category is None) or (args.category is not None and not args.run_name):
+        print("evaluate: give either --run DIR or --category NAME --run-name NAME", file=sys.stderr)
+        return 2
+    if args.run is not None:
+        run = Path(args.run)
+    else:
+        from .catalog import load_catalog
+        from .runs import RunLayout
+
+        catalog = load_catalog(args.catalog)
+        catalog.category(args.category)  # an unknown category is an error naming the catalog
+        run = RunLayout(catalog.storage(), args.category, args.run_name).root
     if not run.is_dir():
         print(f"run folder {run} does not exist", file=sys.stderr)
         return 2
@@ -170,8 +292,20 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _catalog_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--catalog", type=Path, default=None, help="data catalog (default: ./data_catalog.yaml)")
+def _cmd_bootstrap(args: argparse.Namespace) -> int:
+    root = Path(__file__).resolve().parent.parent
+    if not (root / "flows" / "bootstrap.py").is_file():
+        print(f"bat3r bootstrap runs the bootstrap flow of a bat3r checkout ({root / 'flows' / 'bootstrap.py'} "
+              f"is missing): install bat3r from its repository (pip install -e .)", file=sys.stderr)
+        return 2
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    from flows.bootstrap import run_bootstrap
+
+    return run_bootstrap(bootstrap_parameters(args, args.parser))
+
+
+_catalog_option = add_catalog_argument
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -181,15 +315,37 @@ def build_parser() -> argparse.ArgumentParser:
     cat = sub.add_parser("catalog", help="data catalog commands")
     cat_sub = cat.add_subparsers(dest="catalog_command", required=True)
     val = cat_sub.add_parser("validate", help="print the categories and what each is missing")
-    val.add_argument("path", nargs="?", default=None, help="catalog file (default: ./data_catalog.yaml)")
+    val.add_argument("path", nargs="?", default=None,
+                     help="catalog file (default: $BAT3R_CATALOG, else ./data_catalog.yaml)")
+    _catalog_option(val)
     val.set_defaults(func=_cmd_catalog_validate)
 
-    asset = sub.add_parser("asset", help="generate assets")
+    bs = sub.add_parser("bootstrap", help="run the bootstrap flow locally (the options of python flows/bootstrap.py)",
+                        description="Run the bat3r bootstrap flow locally (Prefect starts a temporary server "
+                                    "unless PREFECT_API_URL points at one).")
+    add_bootstrap_arguments(bs)
+    bs.set_defaults(func=_cmd_bootstrap, parser=bs)
+
+    asset = sub.add_parser("asset", help="check a rigged asset, or generate the toy")
     asset_sub = asset.add_subparsers(dest="asset_command", required=True)
     toy = asset_sub.add_parser("toy", help="write the embedded toy quadruped as a rigged GLB")
     toy.add_argument("--out", type=Path, required=True, help="output .glb path")
     toy.add_argument("--coat", default="bay", help="procedural coat texture (bay, chestnut, grey, pinto)")
     toy.set_defaults(func=_cmd_asset_toy)
+    chk = asset_sub.add_parser("check", help="preflight a rigged asset: rig report, body frame, renders vs labels, "
+                                             "exact-cloud fits; exits 1 naming every failed check")
+    chk.add_argument("path", type=Path, help="rigged asset (.glb/.gltf/.fbx/.blend)")
+    chk.add_argument("--category", help="catalog category whose asset_scale, up_axis, body_frame and fitting to use")
+    _catalog_option(chk)
+    chk.add_argument("--out", type=Path, help="folder for the normalised asset, renders and contact_sheet.png "
+                                              "(default: a new temporary folder)")
+    chk.add_argument("--asset-scale", type=float, default=None, help="file units -> metres (0.01 for centimetres)")
+    chk.add_argument("--up-axis", default=None, help="the file's up axis (+Y, +Z, ...; default +Y)")
+    chk.add_argument("--views", type=int, default=8, help="canonical views to render (default 8)")
+    chk.add_argument("--poses", type=int, default=8, help="random moderate poses to fit (default 8)")
+    chk.add_argument("--no-render", action="store_true", help="skip the Blender renders")
+    chk.add_argument("--no-fit", action="store_true", help="skip the exact-cloud fits")
+    chk.set_defaults(func=_cmd_asset_check)
 
     rd = sub.add_parser("render", help="render one shard of render jobs with Blender (+ exact ray-cast labels)")
     rd.add_argument("--jobs", required=True, type=Path, help="render jobs (Parquet, docs/CONVENTIONS.md schema)")
@@ -245,7 +401,11 @@ def build_parser() -> argparse.ArgumentParser:
     ft.set_defaults(func=_cmd_fit)
 
     ev = sub.add_parser("evaluate", help="recompute metrics.parquet and report.html of a run from its stored rows")
-    ev.add_argument("--run", required=True, type=Path, help="run folder (<storage>/<category>/<run name>)")
+    ev.add_argument("--run", type=Path, default=None, help="run folder (<storage>/<category>/<run name>)")
+    ev.add_argument("--category", default=None, help="with --run-name: the run of this category in the catalog's "
+                                                     "storage root (instead of --run)")
+    ev.add_argument("--run-name", default=None, help="the run's name, with --category")
+    _catalog_option(ev)
     ev.set_defaults(func=_cmd_evaluate)
     return parser
 

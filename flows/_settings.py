@@ -102,7 +102,13 @@ def _texture(catalog_dir: Path, t: str) -> str:
     return str(p if p.is_absolute() else catalog_dir / p)
 
 
-def _collection(cat, spec, size: int, resolution: int, generated_seed_offset: int = 0) -> dict[str, Any] | None:
+def _collection(cat, spec, size: int, resolution: int, assets: SceneAssets, body_frame: dict[str, Any],
+                generated_seed_offset: int = 0) -> dict[str, Any] | None:
+    """The resolved collection (or test split) of a category; a ``generated`` one also carries what
+    ``bat3r_core.datasets.make_collection`` renders it from: the asset (None: the embedded toy, built in-process),
+    the body frame, the category's textures (``()``: the asset's own embedded texture), environment maps, the
+    pose sampler (``toy_natural`` for the toy, ``random`` otherwise, unless the spec names one) and the sample-id
+    prefix (the category name)."""
     if spec is None:
         return None
     path = cat.resolve(spec.path)
@@ -111,8 +117,13 @@ def _collection(cat, spec, size: int, resolution: int, generated_seed_offset: in
     n = spec.n or size
     tag = f"n{n}-r{resolution}"  # one cached collection per size, so presets do not overwrite each other
     gt = cat.resolve(spec.ground_truth) if spec.ground_truth else path.parent / f"{path.name}_ground_truth"
-    return {"kind": "generated", "path": str(path / tag), "ground_truth": str(gt / tag), "n": n,
-            "seed": spec.seed + generated_seed_offset}
+    out = {"kind": "generated", "path": str(path / tag), "ground_truth": str(gt / tag), "n": n,
+           "seed": spec.seed + generated_seed_offset,
+           "pose_sampler": spec.pose_sampler or ("toy_natural" if cat.is_generated else "random")}
+    if not cat.is_generated:
+        out.update(asset=assets.asset, body_frame=body_frame, textures=list(assets.textures),
+                   envmaps=list(assets.envmaps), prefix=cat.name)
+    return out
 
 
 def _split_overrides(overrides: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
@@ -130,11 +141,18 @@ def _split_overrides(overrides: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     return out
 
 
+def _catalog(catalog: Catalog | str | os.PathLike | None) -> Catalog:
+    """A loaded catalog: ``catalog`` itself, the file it names, or the default (``$BAT3R_CATALOG``, else
+    ``./data_catalog.yaml``)."""
+    return catalog if isinstance(catalog, Catalog) else load_catalog(catalog)
+
+
 def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[str, Any] | None = None,
-                ablations: Ablations | Mapping[str, bool] | None = None, catalog: Catalog | None = None,
-                max_failed_fraction: float = 0.1) -> RunSettings:
-    """The settings of run ``run_name`` of ``category`` at run preset ``preset`` (see the module docstring)."""
-    catalog = catalog or load_catalog()
+                ablations: Ablations | Mapping[str, bool] | None = None,
+                catalog: Catalog | str | os.PathLike | None = None, max_failed_fraction: float = 0.1) -> RunSettings:
+    """The settings of run ``run_name`` of ``category`` at run preset ``preset`` (see the module docstring).
+    catalog: a loaded catalog, its file, or None for the default file."""
+    catalog = _catalog(catalog)
     cat = catalog.category(category)
     if isinstance(ablations, Mapping):
         from bat3r_core.config_utils import from_mapping
@@ -175,26 +193,28 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
     assets = SceneAssets(asset=str(asset), textures=textures or (SceneAssets("").textures if cat.is_generated else ()),
                          envmaps=tuple(str(cat.resolve(e)) for e in cat.environment_maps))
     bf = catalog.body_frame(category)
+    body_frame = {"origin": bf.origin, "forward": list(bf.forward), "horizontal": list(bf.horizontal)}
     return RunSettings(
         layout=RunLayout(catalog.storage(), category, run_name), category=category, preset=preset,
         iterations=run.iterations, image_size=run.image_size, layers=catalog.layers, shard_size=shard_size,
         canonical_samples=run.canonical_samples, collection_size=run.collection_size, test_size=run.test_size,
         views_per_fit_max=run.views_per_fit_max, max_failed_fraction=mff, assets=assets,
-        body_frame={"origin": bf.origin, "forward": list(bf.forward), "horizontal": list(bf.horizontal)},
-        collection=_collection(cat, cat.collection, run.collection_size, run.image_size),
-        test_split=_collection(cat, cat.test_split, run.test_size, run.image_size),
+        body_frame=body_frame,
+        collection=_collection(cat, cat.collection, run.collection_size, run.image_size, assets, body_frame),
+        test_split=_collection(cat, cat.test_split, run.test_size, run.image_size, assets, body_frame),
         ablations=ablations, **configs)
 
 
-def recorded_run(category: str, run_name: str, catalog: Catalog | None = None
+def recorded_run(category: str, run_name: str, catalog: Catalog | str | os.PathLike | None = None
                  ) -> tuple[RunSettings, dict[str, Any]]:
     """The settings an existing run was made with, re-resolved from its ``manifest.json`` (preset, overrides,
     ablation switches, failed-fraction limit), and the run parameters the manifest records (``iterations,
     task_runner, seed, overrides``) — for tools that analyse a finished run (e.g. the demo benchmarks).
 
+    catalog: the catalog whose storage root holds the run (a loaded catalog, its file, or None for the default).
     Raises FileNotFoundError when the run has no manifest.
     """
-    catalog = catalog or load_catalog()
+    catalog = _catalog(catalog)
     layout = RunLayout(catalog.storage(), category, run_name)
     config = read_manifest(layout).get("config")
     if not config:

@@ -3,7 +3,7 @@ iteration, with metrics, report and dashboard artifacts after each.
 
 Reads like the data flow of ``DESIGN.md``::
 
-    collection + test split ── toy_collection ─▶ <run>/collection, <run>/test shards
+    collection + test split ── toy_collection ─▶ <run>/collection, <run>/test shards (generated ones rendered first)
     iteration 0 (camera sampling around the rest-pose mesh instead of infer/fit/plan):
     rest-pose rig           ── plan ───────────▶ iter-00/plan      render jobs (canonical, or random poses)
     iteration i >= 1 (predictor Φ_{i-1}):
@@ -18,8 +18,10 @@ Reads like the data flow of ``DESIGN.md``::
     test predictions + GT   ── evaluate ───────▶ iter-ii/evaluate, metrics.parquet, report.html, artifacts
 
 Every task is cached (inputs + stage config + stage code version + output location): rerunning with the same run
-name after a crash recomputes only what is missing. Local run:
-``python flows/bootstrap.py --category toy --preset tiny``.
+name after a crash recomputes only what is missing. A stage that drops more than ``runs.DROP_WARN_FRACTION`` of
+its samples says so (log warning, ``…-drops`` artifact, iteration summary); one that leaves fewer samples than the
+next stage needs stops the run before that stage (``runs.TooFewSamples``). Local run:
+``python flows/bootstrap.py --category toy --preset tiny [--catalog PATH]`` (or ``bat3r bootstrap``, same options).
 """
 from __future__ import annotations
 
@@ -30,14 +32,17 @@ if __package__ in (None, ""):  # run as a script or loaded by path (deployments)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import dataclasses
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 from prefect import flow
 from prefect.logging import get_run_logger
 
 from bat3r_core import shards
+from bat3r_core.catalog import default_catalog_path
+from bat3r_core.cli import add_bootstrap_arguments, bootstrap_parameters
 from bat3r_core.config_utils import to_mapping
-from bat3r_core.runs import prune_shards, write_manifest
+from bat3r_core.runs import (SampleDrops, SampleNeed, TooFewSamples, TooManyFailedShards, prune_shards,
+                             require_samples, training_need, write_manifest)
 from flows._artifacts import publish_iteration_artifacts
 from flows._fanout import StageResult, artifact_key, run_stage
 from flows._runners import make_task_runner
@@ -54,10 +59,11 @@ from tasks.raw_images import raw_image_shard
 from tasks.render import render_shard
 from tasks.train import train_model
 
-__all__ = ["bootstrap", "canonical_initialisation", "refinement_iteration", "STAGE_MODULES"]
+__all__ = ["bootstrap", "canonical_initialisation", "refinement_iteration", "run_bootstrap", "build_parser", "main",
+           "STAGE_MODULES"]
 
 STAGE_MODULES = {
-    "collection": "bat3r_core.predictor.collection", "toy_collection": "bat3r_core.datasets",
+    "collection": "bat3r_core.predictor.collection", "generated_collection": "bat3r_core.datasets",
     "plan": "bat3r_core.datasets", "render": "bat3r_core.render.runner",
     "features": "bat3r_core.predictor.features", "train": "bat3r_core.predictor.train",
     "infer": "bat3r_core.predictor.infer", "fit": "bat3r_core.fitting.fit", "plan_views": "bat3r_core.fitting.augment",
@@ -102,153 +108,179 @@ def _progress(settings: RunSettings, iteration: int, stage: str) -> str:
     return artifact_key(settings.layout.category, settings.layout.run_name, f"iter-{iteration:02d}", stage)
 
 
+class _Iteration:
+    """The stages of one iteration as they run: each stage's fan-out (``run_stage``, which reports dropped samples)
+    and, where the next stage needs a number of samples, the check that stops the iteration before that stage
+    starts (``bat3r_core.runs.require_samples``). A stage that stops the iteration (too many failed shards, too few
+    samples) still gets the iteration's summary artifact published, with the stages that ran and the error."""
+
+    def __init__(self, settings: RunSettings, iteration: int, data_drops: Sequence[SampleDrops] = ()) -> None:
+        self.settings, self.iteration, self.data_drops = settings, iteration, tuple(data_drops)
+        self.stages: list[StageResult] = []
+
+    def run(self, stage: str, stage_task, calls: list[dict[str, Any]], *, max_failed_fraction: float,
+            needs: SampleNeed | None = None) -> StageResult:
+        settings = self.settings
+        try:
+            result = run_stage(stage, for_run(stage_task, settings.layout), calls,
+                               progress_key=_progress(settings, self.iteration, stage),
+                               max_failed_fraction=max_failed_fraction, label=f"iteration {self.iteration} {stage}")
+            self.stages.append(result)
+            if needs is not None:
+                require_samples(result.drops, needs, [r.drops for r in self.stages[:-1]],
+                                category=settings.category)
+        except (TooManyFailedShards, TooFewSamples) as exc:
+            get_run_logger().error("%s", exc)
+            publish_iteration_artifacts(settings.layout, self.iteration, self.stages, [], data_drops=self.data_drops,
+                                        stopped=str(exc))
+            raise
+        return result
+
+
+def _data_drops(mappings: Sequence[Mapping[str, Any]] | None) -> list[SampleDrops]:
+    return [SampleDrops.from_mapping(m) for m in mappings or ()]
+
+
 @flow(name="canonical-initialisation", flow_run_name="{category}-{run_name}-iter-00")
 def canonical_initialisation(category: str, preset: str, run_name: str, overrides: dict[str, Any],
-                             ablations: dict[str, bool], seed: int, max_failed_fraction: float) -> dict[str, Any]:
+                             ablations: dict[str, bool], seed: int, max_failed_fraction: float,
+                             catalog: str | None = None, data_drops: list[dict] | None = None) -> dict[str, Any]:
     """Iteration 0: sample render jobs around the rest-pose mesh, render them, extract features, train Φ_0.
+    catalog: the data catalog file (default: ``$BAT3R_CATALOG`` / ``./data_catalog.yaml``). data_drops: the run
+    data's ``SampleDrops`` mappings (collection, test split), listed in this iteration's summary.
     Returns ``{"stages": {stage: [records]}, "states": {stage: [state names]}, "predictor": path, "metrics": rows}``."""
-    settings = resolve_run(category, preset, run_name, overrides, ablations, max_failed_fraction=max_failed_fraction)
+    settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
+                           max_failed_fraction=max_failed_fraction)
     layout, cfg, mff = settings.layout, _stage_configs(settings, seed), settings.max_failed_fraction
+    it = _Iteration(settings, 0, _data_drops(data_drops))
+    need = training_need(settings.train.batch_size)
 
-    plan = run_stage("plan", for_run(plan_sampled_jobs, layout),
-                     [{"asset": settings.assets.asset, "out_dir": str(layout.stage_dir(0, "plan")),
-                       "config": cfg["plan"]}],
-                     progress_key=_progress(settings, 0, "plan"), max_failed_fraction=0.0)
+    plan = it.run("plan", plan_sampled_jobs, [{"asset": settings.assets.asset,
+                                               "out_dir": str(layout.stage_dir(0, "plan")), "config": cfg["plan"]}],
+                  max_failed_fraction=0.0, needs=need)
     job_files = plan.records[0]["files"]
     keep = range(len(job_files))
     for stage in ("plan", "render", "features"):  # shards of an earlier, larger plan of this run
         prune_shards(layout.stage_dir(0, stage), keep)
 
-    render = run_stage("render", for_run(render_shard, layout),
-                       [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(0, "render")),
-                         "config": cfg["render"]} for i, f in enumerate(job_files)],
-                       progress_key=_progress(settings, 0, "render"), max_failed_fraction=mff)
-
-    features = run_stage("features", for_run(extract_features_shard, layout),
-                         [{"input_dir": str(layout.stage_dir(0, "render")), "index": r["index"],
-                           "out_dir": str(layout.stage_dir(0, "features")), "config": cfg["features"]}
-                          for r in render.records],
-                         progress_key=_progress(settings, 0, "features"), max_failed_fraction=mff)
-
-    train = run_stage("train", for_run(train_model, layout),
-                      [{"shards_dir": str(layout.stage_dir(0, "render")), "out_dir": str(layout.stage_dir(0, "train")),
-                        "config": cfg["train"]}],
-                      progress_key=_progress(settings, 0, "train"), max_failed_fraction=0.0)
-
-    stages: list[StageResult] = [plan, render, features, train]
+    render = it.run("render", render_shard,
+                    [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(0, "render")),
+                      "config": cfg["render"]} for i, f in enumerate(job_files)],
+                    max_failed_fraction=mff, needs=need)
+    it.run("features", extract_features_shard,
+           [{"input_dir": str(layout.stage_dir(0, "render")), "index": r["index"],
+             "out_dir": str(layout.stage_dir(0, "features")), "config": cfg["features"]} for r in render.records],
+           max_failed_fraction=mff)
+    train = it.run("train", train_model,
+                   [{"shards_dir": str(layout.stage_dir(0, "render")), "out_dir": str(layout.stage_dir(0, "train")),
+                     "config": cfg["train"]}], max_failed_fraction=0.0)
     predictor = train.records[0]["predictor"]
-    stages += _evaluate_test(settings, cfg, 0, predictor)
-    return _finish_iteration(settings, category, run_name, 0, stages, predictor)
+    _evaluate_test(it, cfg, predictor)
+    return _finish_iteration(it, predictor)
 
 
-def _evaluate_test(settings: RunSettings, cfg: dict[str, Any], iteration: int, predictor: str) -> list[StageResult]:
+def _evaluate_test(it: _Iteration, cfg: dict[str, Any], predictor: str) -> None:
     """Φ_iteration on the test split: inference shards, then per-sample evaluation rows (needs ground truth)."""
-    layout, mff = settings.layout, settings.max_failed_fraction
+    layout, mff, iteration = it.settings.layout, it.settings.max_failed_fraction, it.iteration
     test_dir = layout.run_stage_dir("test")
     if cfg["evaluate"] is None or not shards.list_shards(test_dir):
-        return []
-    infer = run_stage("test_infer", for_run(infer_shard, layout),
-                      [{"predictor": predictor, "collection_dir": str(test_dir), "index": i,
-                        "out_dir": str(layout.stage_dir(iteration, "test_infer")), "config": cfg["infer"]}
-                       for i in shards.list_shards(test_dir)],
-                      progress_key=_progress(settings, iteration, "test_infer"), max_failed_fraction=mff)
+        return
+    infer = it.run("test_infer", infer_shard,
+                   [{"predictor": predictor, "collection_dir": str(test_dir), "index": i,
+                     "out_dir": str(layout.stage_dir(iteration, "test_infer")), "config": cfg["infer"]}
+                    for i in shards.list_shards(test_dir)], max_failed_fraction=mff)
     evaluate_cfg = {**cfg["evaluate"], "iteration": iteration}
-    rows = run_stage("evaluate", for_run(evaluate_shard, layout),
-                     [{"predictions_dir": str(layout.stage_dir(iteration, "test_infer")), "index": r["index"],
-                       "out_dir": str(layout.stage_dir(iteration, "evaluate")), "config": evaluate_cfg}
-                      for r in infer.records],
-                     progress_key=_progress(settings, iteration, "evaluate"), max_failed_fraction=mff)
-    return [infer, rows]
+    it.run("evaluate", evaluate_shard,
+           [{"predictions_dir": str(layout.stage_dir(iteration, "test_infer")), "index": r["index"],
+             "out_dir": str(layout.stage_dir(iteration, "evaluate")), "config": evaluate_cfg}
+            for r in infer.records], max_failed_fraction=mff)
 
 
-def _finish_iteration(settings: RunSettings, category: str, run_name: str, iteration: int,
-                      stages: list[StageResult], predictor: str) -> dict[str, Any]:
+def _finish_iteration(it: _Iteration, predictor: str) -> dict[str, Any]:
     """metrics.parquet, report.html and the iteration's dashboard artifacts; the subflow's result."""
-    layout = settings.layout
-    metrics = evaluate(category, run_name, storage_root=str(layout.storage_root))
+    layout, stages = it.settings.layout, it.stages
+    metrics = evaluate(layout.category, layout.run_name, storage_root=str(layout.storage_root))
     notes = [] if any(r.stage == "evaluate" for r in stages) else \
         ["The test split has no ground truth: no per-sample evaluation."]
-    publish_iteration_artifacts(layout, iteration, stages, metrics["rows"], notes=notes)
+    publish_iteration_artifacts(layout, it.iteration, stages, metrics["rows"], notes=notes, data_drops=it.data_drops)
     return {"stages": {r.stage: list(r.records) for r in stages},
             "states": {r.stage: list(r.states) for r in stages},
+            "drops": {r.stage: r.drops.to_mapping() for r in stages},
             "predictor": predictor, "metrics": metrics["rows"]}
 
 
 @flow(name="refinement-iteration", flow_run_name="{category}-{run_name}-iter-{iteration:02d}")
 def refinement_iteration(category: str, preset: str, run_name: str, iteration: int, predictor: str,
                          overrides: dict[str, Any], ablations: dict[str, bool], seed: int,
-                         max_failed_fraction: float) -> dict[str, Any]:
+                         max_failed_fraction: float, catalog: str | None = None) -> dict[str, Any]:
     """Iteration i >= 1: Φ_{i-1} predicts the collection, the rig is fitted to every prediction, the fitted poses are
     rendered from their estimated and augmented viewpoints, and Φ_i is trained on those renders alone (earlier
     iterations' data are discarded, as in the paper). Returns like :func:`canonical_initialisation`."""
-    settings = resolve_run(category, preset, run_name, overrides, ablations, max_failed_fraction=max_failed_fraction)
+    settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
+                           max_failed_fraction=max_failed_fraction)
     layout, cfg, mff = settings.layout, _stage_configs(settings, seed + iteration), settings.max_failed_fraction
+    it = _Iteration(settings, iteration)
+    need = training_need(settings.train.batch_size)
     collection_dir = layout.run_stage_dir("collection")
-    infer = run_stage("infer", for_run(infer_shard, layout),
-                      [{"predictor": predictor, "collection_dir": str(collection_dir), "index": i,
-                        "out_dir": str(layout.stage_dir(iteration, "infer")), "config": cfg["infer"]}
-                       for i in shards.list_shards(collection_dir)],
-                      progress_key=_progress(settings, iteration, "infer"), max_failed_fraction=mff)
-    fit = run_stage("fit", for_run(fit_shard, layout),
-                    [{"asset": settings.assets.asset, "predictions_dir": str(layout.stage_dir(iteration, "infer")),
-                      "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "fit")), "config": cfg["fit"]}
-                     for r in infer.records],
-                    progress_key=_progress(settings, iteration, "fit"), max_failed_fraction=mff)
-    earlier = [infer, fit]
+    infer = it.run("infer", infer_shard,
+                   [{"predictor": predictor, "collection_dir": str(collection_dir), "index": i,
+                     "out_dir": str(layout.stage_dir(iteration, "infer")), "config": cfg["infer"]}
+                    for i in shards.list_shards(collection_dir)],
+                   max_failed_fraction=mff, needs=SampleNeed(1, "fitting", "one prediction to fit the rig to"))
+    fit = it.run("fit", fit_shard,
+                 [{"asset": settings.assets.asset, "predictions_dir": str(layout.stage_dir(iteration, "infer")),
+                   "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "fit")), "config": cfg["fit"]}
+                  for r in infer.records],
+                 max_failed_fraction=mff, needs=SampleNeed(1, "view planning", "one fitted pose to render"))
     collection_gt = settings.collection.get("ground_truth")
     if collection_gt and (Path(collection_gt) / "ground_truth.npz").is_file():  # pseudo-label quality (toy)
-        earlier.append(run_stage("pseudo_labels", for_run(pseudo_label_quality, layout),
-                                 [{"fit_dir": str(layout.stage_dir(iteration, "fit")),
-                                   "out_dir": str(layout.stage_dir(iteration, "evaluate")),
-                                   "config": {"asset": settings.assets.asset,
-                                              "ground_truth": str(Path(collection_gt) / "ground_truth.npz")}}],
-                                 progress_key=_progress(settings, iteration, "pseudo_labels"),
-                                 max_failed_fraction=1.0))
+        it.run("pseudo_labels", pseudo_label_quality,
+               [{"fit_dir": str(layout.stage_dir(iteration, "fit")),
+                 "out_dir": str(layout.stage_dir(iteration, "evaluate")),
+                 "config": {"asset": settings.assets.asset,
+                            "ground_truth": str(Path(collection_gt) / "ground_truth.npz")}}],
+               max_failed_fraction=1.0)
     if settings.ablations.raw_images:  # the raw-image baseline: train on the photos with fitted pseudo-labels
-        render = run_stage("render", for_run(raw_image_shard, layout),
-                           [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
-                             "collection_dir": str(collection_dir), "index": r["index"],
-                             "out_dir": str(layout.stage_dir(iteration, "render")),
-                             "config": {"layers": settings.layers}} for r in fit.records],
-                           progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
-        return _train_and_evaluate(settings, category, run_name, iteration, cfg, earlier, render, predictor)
-    plan = run_stage("plan", for_run(plan_views_shard, layout),
-                     [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
-                       "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "plan")),
-                       "config": cfg["plan_views"]} for r in fit.records],
-                     progress_key=_progress(settings, iteration, "plan"), max_failed_fraction=mff)
+        it.run("render", raw_image_shard,
+               [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
+                 "collection_dir": str(collection_dir), "index": r["index"],
+                 "out_dir": str(layout.stage_dir(iteration, "render")),
+                 "config": {"layers": settings.layers}} for r in fit.records],
+               max_failed_fraction=mff, needs=need)
+        return _train_and_evaluate(it, cfg, predictor)
+    plan = it.run("plan", plan_views_shard,
+                  [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
+                    "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "plan")),
+                    "config": cfg["plan_views"]} for r in fit.records],
+                  max_failed_fraction=mff, needs=need)
     job_files = [(r["index"], r["files"][0]) for r in plan.records if r["n_jobs"] > 0]
     for stage in ("render", "features"):  # shards of an earlier plan of this run that this plan does not have
         prune_shards(layout.stage_dir(iteration, stage), [i for i, _ in job_files])
-    if not job_files:
-        raise RuntimeError(f"iteration {iteration}: no fitted instance produced a render job (fits: "
-                           f"{sum(r['n_ok'] for r in fit.records)} ok of {sum(r['n_rows'] for r in fit.records)}); "
-                           f"see {layout.stage_dir(iteration, 'fit')}")
-    render = run_stage("render", for_run(render_shard, layout),
-                       [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(iteration, "render")),
-                         "config": cfg["render"]} for i, f in job_files],
-                       progress_key=_progress(settings, iteration, "render"), max_failed_fraction=mff)
-    return _train_and_evaluate(settings, category, run_name, iteration, cfg, [*earlier, plan], render, predictor)
+    it.run("render", render_shard,
+           [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(iteration, "render")),
+             "config": cfg["render"]} for i, f in job_files],
+           max_failed_fraction=mff, needs=need)
+    return _train_and_evaluate(it, cfg, predictor)
 
 
-def _train_and_evaluate(settings: RunSettings, category: str, run_name: str, iteration: int, cfg: dict[str, Any],
-                        earlier: list[StageResult], render: StageResult, previous: str) -> dict[str, Any]:
+def _train_and_evaluate(it: _Iteration, cfg: dict[str, Any], previous: str) -> dict[str, Any]:
     """features → train Φ_iteration on the iteration's training shards (from Φ_{iteration-1}'s weights
     ``previous`` when ``train.warm_start``) → evaluate it on the test split."""
+    settings, iteration = it.settings, it.iteration
     layout, mff = settings.layout, settings.max_failed_fraction
-    features = run_stage("features", for_run(extract_features_shard, layout),
-                         [{"input_dir": str(layout.stage_dir(iteration, "render")), "index": r["index"],
-                           "out_dir": str(layout.stage_dir(iteration, "features")), "config": cfg["features"]}
-                          for r in render.records],
-                         progress_key=_progress(settings, iteration, "features"), max_failed_fraction=mff)
-    train = run_stage("train", for_run(train_model, layout),
-                      [{"shards_dir": str(layout.stage_dir(iteration, "render")),
-                        "out_dir": str(layout.stage_dir(iteration, "train")),
-                        "config": {**cfg["train"], "init_from": previous if settings.train.warm_start else None}}],
-                      progress_key=_progress(settings, iteration, "train"), max_failed_fraction=0.0)
+    render = it.stages[-1]
+    it.run("features", extract_features_shard,
+           [{"input_dir": str(layout.stage_dir(iteration, "render")), "index": r["index"],
+             "out_dir": str(layout.stage_dir(iteration, "features")), "config": cfg["features"]}
+            for r in render.records], max_failed_fraction=mff)
+    train = it.run("train", train_model,
+                   [{"shards_dir": str(layout.stage_dir(iteration, "render")),
+                     "out_dir": str(layout.stage_dir(iteration, "train")),
+                     "config": {**cfg["train"], "init_from": previous if settings.train.warm_start else None}}],
+                   max_failed_fraction=0.0)
     new_predictor = train.records[0]["predictor"]
-    stages = [*earlier, render, features, train, *_evaluate_test(settings, cfg, iteration, new_predictor)]
-    return _finish_iteration(settings, category, run_name, iteration, stages, new_predictor)
+    _evaluate_test(it, cfg, new_predictor)
+    return _finish_iteration(it, new_predictor)
 
 
 def _bootstrap_run_name() -> str:
@@ -263,7 +295,8 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
               run_name: str | None = None, overrides: dict[str, Any] | None = None,
               gaussian_cameras: bool = False, no_fitting_regularisation: bool = False,
               no_view_augmentation: bool = False, random_poses: bool = False, raw_images: bool = False,
-              task_runner: str = "local", max_failed_fraction: float = 0.1, seed: int = 0) -> dict[str, Any]:
+              task_runner: str = "local", max_failed_fraction: float = 0.1, seed: int = 0,
+              catalog: str | None = None) -> dict[str, Any]:
     """The bootstrap loop of ``category`` at run preset ``preset`` (``tiny``, ``demo``, ``paper``).
 
     Args:
@@ -277,15 +310,23 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
             the path of a YAML file with one runner config.
         max_failed_fraction: a stage continues while at most this fraction of its shards failed after retries.
         seed: seed of the sampled render jobs.
+        catalog: the data catalog file (default: ``$BAT3R_CATALOG``, else ``./data_catalog.yaml`` of the process
+            running the flow — a deployment's worker). The resolved absolute path is what every subflow reads and
+            what ``manifest.json`` records (``config.parameters.catalog``).
+
+    A stage that drops more than ``bat3r_core.runs.DROP_WARN_FRACTION`` of its samples is reported (log warning,
+    ``…-drops`` artifact, iteration summary); a stage that leaves fewer samples than the next one needs stops the
+    run with ``bat3r_core.runs.TooFewSamples`` before that stage starts.
 
     Returns ``{"run_dir", "iterations": [result of each iteration], "metrics": rows}``.
     """
     logger = get_run_logger()
     run_name = run_name or preset
+    catalog_file = str(Path(catalog).expanduser().resolve() if catalog else default_catalog_path().resolve())
     switches = dict(gaussian_cameras=gaussian_cameras, no_fitting_regularisation=no_fitting_regularisation,
                     no_view_augmentation=no_view_augmentation, random_poses=random_poses, raw_images=raw_images)
     overrides = dict(overrides or {})
-    settings = resolve_run(category, preset, run_name, overrides, _ablations(**switches),
+    settings = resolve_run(category, preset, run_name, overrides, _ablations(**switches), catalog=catalog_file,
                            max_failed_fraction=max_failed_fraction)
     n_iter = settings.iterations if iterations is None else int(iterations)
     if n_iter < 0:
@@ -294,62 +335,70 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
         raise ValueError("random_poses is a baseline trained once on random poses: run it with iterations=0")
     layout = settings.layout.create()
     write_manifest(layout, {**settings.to_mapping(), "parameters": {
-        "iterations": n_iter, "task_runner": task_runner, "seed": seed, "overrides": overrides}}, STAGE_MODULES)
-    logger.info("run folder %s", layout.root)
+        "iterations": n_iter, "task_runner": task_runner, "seed": seed, "overrides": overrides,
+        "catalog": catalog_file}}, STAGE_MODULES)
+    logger.info("run folder %s (catalog %s)", layout.root, catalog_file)
 
     runner = make_task_runner(task_runner)
+    data_drops = []
+    needs = {"collection": SampleNeed(1, "inference of iteration 1", "one collection image to predict")
+             if n_iter > 0 else None,
+             "test": SampleNeed(1, "evaluation", "one test image") if (settings.test_split or {}).get("ground_truth")
+             else None}
     for split, spec in (("collection", settings.collection), ("test", settings.test_split)):
         if spec is not None:
-            prepare_split(settings, split, spec)
+            data_drops += [r.drops.to_mapping() for r in prepare_split(settings, split, spec, needs=needs[split])]
     ablation_dict = dataclasses.asdict(settings.ablations)
     results = [canonical_initialisation.with_options(task_runner=runner)(
-        category, preset, run_name, overrides, ablation_dict, seed, settings.max_failed_fraction)]
+        category, preset, run_name, overrides, ablation_dict, seed, settings.max_failed_fraction, catalog_file,
+        data_drops)]
     for iteration in range(1, n_iter + 1):
         logger.info("iteration %d of %d", iteration, n_iter)
         results.append(refinement_iteration.with_options(task_runner=runner)(
             category, preset, run_name, iteration, results[-1]["predictor"], overrides, ablation_dict, seed,
-            settings.max_failed_fraction))
+            settings.max_failed_fraction, catalog_file))
     return {"run_dir": str(layout.root), "iterations": results, "metrics": results[-1]["metrics"]}
 
 
-def _parse(argv: list[str] | None = None):
-    import argparse
-    import json
+def run_bootstrap(parameters: Mapping[str, Any]) -> int:
+    """Run the flow with ``parameters`` (``bat3r_core.cli.bootstrap_parameters``) and print the run folder and the
+    metrics rows; a run stopped by too few samples or too many failed shards prints why (stderr) and returns 1.
+    What ``python flows/bootstrap.py`` and ``bat3r bootstrap`` do. The catalog, category and preset are checked
+    before Prefect starts: a wrong one prints the error and returns 2."""
+    from bat3r_core.catalog import ConfigError, load_catalog
 
-    p = argparse.ArgumentParser(description="Run the bat3r bootstrap flow locally.")
-    p.add_argument("--category", default="toy")
-    p.add_argument("--preset", default="tiny")
-    p.add_argument("--iterations", type=int, default=None)
-    p.add_argument("--run-name", default=None)
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=JSON",
-                   help="override a setting, e.g. --set train.steps=100 (value parsed as JSON, else a string)")
-    for name in ("gaussian-cameras", "no-fitting-regularisation", "no-view-augmentation", "random-poses",
-                 "raw-images"):
-        p.add_argument(f"--{name}", action="store_true")
-    p.add_argument("--task-runner", default="local")
-    p.add_argument("--max-failed-fraction", type=float, default=0.1)
-    p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args(argv)
-    overrides = {}
-    for item in args.overrides:
-        key, sep, value = item.partition("=")
-        if not sep:
-            p.error(f"--set expects KEY=VALUE, got {item!r}")
-        try:
-            overrides[key] = json.loads(value)
-        except json.JSONDecodeError:
-            overrides[key] = value
-    return args, overrides
-
-
-if __name__ == "__main__":
-    args, overrides = _parse()
-    result = bootstrap(category=args.category, preset=args.preset, iterations=args.iterations,
-                       run_name=args.run_name, overrides=overrides, gaussian_cameras=args.gaussian_cameras,
-                       no_fitting_regularisation=args.no_fitting_regularisation,
-                       no_view_augmentation=args.no_view_augmentation, random_poses=args.random_poses,
-                       raw_images=args.raw_images, task_runner=args.task_runner,
-                       max_failed_fraction=args.max_failed_fraction, seed=args.seed)
+    try:
+        catalog = load_catalog(parameters.get("catalog"))
+        catalog.category(parameters.get("category", "toy"))
+        catalog.run_preset(parameters.get("preset", "tiny"))
+    except (ConfigError, FileNotFoundError, KeyError) as exc:
+        print(f"bootstrap: {exc.args[0] if isinstance(exc, KeyError) else exc}", file=sys.stderr)
+        return 2
+    try:
+        result = bootstrap(**parameters)
+    except (TooFewSamples, TooManyFailedShards) as exc:
+        print(f"bootstrap stopped: {exc}", file=sys.stderr)
+        return 1
     print(f"run folder: {result['run_dir']}")
     for row in result["metrics"]:
         print(row)
+    return 0
+
+
+def build_parser():
+    """The command line of ``python flows/bootstrap.py``: ``bat3r_core.cli.add_bootstrap_arguments`` (the options
+    of ``bat3r bootstrap`` too)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description="Run the bat3r bootstrap flow locally.")
+    add_bootstrap_arguments(parser)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    return run_bootstrap(bootstrap_parameters(parser.parse_args(argv), parser))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

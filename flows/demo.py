@@ -15,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
     sys.path.insert(0, str(ROOT))
 
+from bat3r_core.cli import add_catalog_argument  # noqa: E402
 from flows._artifacts import METRIC_COLUMNS  # noqa: E402
 from flows._settings import resolve_run  # noqa: E402
 from flows.bootstrap import bootstrap  # noqa: E402
@@ -60,10 +61,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--preset", default="demo")
     p.add_argument("--run-name", default="demo")
     p.add_argument("--no-record", action="store_true", help="do not write benchmarks/results/demo.json")
+    add_catalog_argument(p)
     args = p.parse_args(argv)
-    resumed = resolve_run("toy", args.preset, args.run_name).layout.manifest.is_file()
+    catalog = None if args.catalog is None else str(Path(args.catalog).resolve())
+    resumed = resolve_run("toy", args.preset, args.run_name, catalog=catalog).layout.manifest.is_file()
     t0 = time.perf_counter()
-    result = bootstrap(category="toy", preset=args.preset, run_name=args.run_name)
+    result = bootstrap(category="toy", preset=args.preset, run_name=args.run_name, catalog=catalog)
     minutes = (time.perf_counter() - t0) / 60.0
     rows = sorted((r for r in result["metrics"] if r["split"] == "test"), key=lambda r: r["iteration"])
     print(f"\nrun folder: {result['run_dir']}  (report: {result['run_dir']}/report.html)")

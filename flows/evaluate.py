@@ -27,10 +27,12 @@ __all__ = ["evaluate"]
 
 
 @flow(name="evaluate", flow_run_name="{category}-{run_name}-evaluate")
-def evaluate(category: str = "toy", run_name: str = "tiny", storage_root: str | None = None) -> dict[str, Any]:
-    """Metrics and report of run ``<storage root>/<category>/<run name>`` (storage root: the catalog's).
+def evaluate(category: str = "toy", run_name: str = "tiny", storage_root: str | None = None,
+             catalog: str | None = None) -> dict[str, Any]:
+    """Metrics and report of run ``<storage root>/<category>/<run name>`` (storage root: ``storage_root``, else
+    that of ``catalog``, default ``$BAT3R_CATALOG`` / ``./data_catalog.yaml``).
     Returns ``{"rows": metrics rows (NaN as None), "report": path of report.html}``."""
-    root = Path(storage_root) if storage_root else load_catalog().storage()
+    root = Path(storage_root) if storage_root else load_catalog(catalog).storage()
     layout = RunLayout(root, category, run_name)
     if not layout.root.is_dir():
         raise FileNotFoundError(f"run folder {layout.root} does not exist")
@@ -45,15 +47,24 @@ def evaluate(category: str = "toy", run_name: str = "tiny", storage_root: str | 
     return {"rows": metrics["rows"], "report": report}
 
 
-if __name__ == "__main__":
+def main(argv: list[str] | None = None) -> int:
     import argparse
+
+    from bat3r_core.cli import add_catalog_argument
 
     parser = argparse.ArgumentParser(description="Recompute a run's metrics and report.")
     parser.add_argument("--category", default="toy")
     parser.add_argument("--run-name", default="tiny")
-    parser.add_argument("--storage-root", default=None)
-    args = parser.parse_args()
-    out = evaluate(args.category, args.run_name, args.storage_root)
+    parser.add_argument("--storage-root", default=None, help="runs folder (default: the catalog's storage root)")
+    add_catalog_argument(parser)
+    args = parser.parse_args(argv)
+    out = evaluate(args.category, args.run_name, args.storage_root,
+                   None if args.catalog is None else str(Path(args.catalog).resolve()))
     print(f"report: {out['report']}")
     for row in out["rows"]:
         print(row)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -182,9 +182,11 @@ def test_killed_run_resumes_from_its_completed_shards(first_run, catalog, prefec
     from prefect.settings import PREFECT_API_URL
 
     layout = RunLayout(catalog / "runs", "toy", "k1")
-    env = {**os.environ, "PREFECT_API_URL": PREFECT_API_URL.value(), "PYTHONPATH": str(ROOT)}
-    cmd = [sys.executable, str(ROOT / "flows" / "bootstrap.py"), "--iterations", "0", "--run-name", "k1",
-           *CLI_TINY]
+    # the catalog reaches the flow through --catalog alone (the subprocess has no $BAT3R_CATALOG)
+    env = {**{k: v for k, v in os.environ.items() if k != "BAT3R_CATALOG"},
+           "PREFECT_API_URL": PREFECT_API_URL.value(), "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, str(ROOT / "flows" / "bootstrap.py"), "--catalog", str(catalog / "data_catalog.yaml"),
+           "--iterations", "0", "--run-name", "k1", *CLI_TINY]
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     try:
@@ -196,6 +198,7 @@ def test_killed_run_resumes_from_its_completed_shards(first_run, catalog, prefec
         os.killpg(proc.pid, signal.SIGKILL)  # the flow and its Blender workers, mid-iteration
         proc.wait()
     assert not (layout.stage_dir(0, "train") / "predictor.pt").exists()
+    assert read_manifest(layout)["config"]["parameters"]["catalog"] == str(catalog / "data_catalog.yaml")
     completed = _persisted_render_shards(layout)  # task finished: shard written and its record persisted
     kept = {p.name: (p.stat().st_mtime_ns, shards.content_hash([p]))
             for i in completed for p in layout.stage_dir(0, "render").glob(f"part-{i:05d}.*")}

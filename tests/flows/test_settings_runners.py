@@ -165,3 +165,34 @@ def test_summary_markdown_lists_failures_skips_and_metrics(tmp_path):
                         FailureSummary("features", 1, (), 0.1), cached=0, recomputed=0)
     assert "Dropped samples" not in summary_markdown(layout, 0, [quiet], [])  # 2.5 %: below the threshold
     assert artifact_key("Toy", "r_1.x", "iter-01") == "toy-r-1-x-iter-01"
+
+
+def test_generated_collections_resolve_what_they_are_rendered_from(tmp_path, monkeypatch):
+    import yaml
+
+    from bat3r_core.rig_io import save_rig_glb
+    from bat3r_core.toy import build_toy_rig
+    from flows._settings import resolve_run
+
+    monkeypatch.setenv("BAT3R_STORAGE_ROOT", str(tmp_path / "runs"))
+    data = yaml.safe_load((ROOT / "data_catalog.yaml").read_text())
+    save_rig_glb(build_toy_rig(), tmp_path / "beast.glb")
+    data["categories"]["beast"] = {
+        "asset": "beast.glb", "body_frame": data["categories"]["toy"]["body_frame"],
+        "collection": {"kind": "generated", "path": "gen/train", "seed": 3},
+        "test_split": {"kind": "generated", "path": "gen/test", "pose_sampler": "toy_natural"},
+        "fitting": {"preset": "synthetic"}}
+    path = tmp_path / "catalog.yaml"
+    path.write_text(yaml.safe_dump(data))
+    s = resolve_run("beast", "tiny", "r1", catalog=str(path))  # the catalog given by its file
+    assert s.collection["pose_sampler"] == "random" and s.test_split["pose_sampler"] == "toy_natural"
+    assert s.collection["asset"] == s.assets.asset and s.collection["textures"] == [] == list(s.assets.textures)
+    assert s.collection["body_frame"] == s.body_frame and s.collection["prefix"] == "beast"
+    assert s.collection["path"] == str(tmp_path / "gen" / "train" / "n16-r32")
+    toy = resolve_run("toy", "tiny", "r1", catalog=str(path))
+    assert toy.collection["pose_sampler"] == "toy_natural" and "asset" not in toy.collection  # built in-process
+    data["categories"]["beast"]["collection"] = {"kind": "folder", "path": "photos", "pose_sampler": "random"}
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match=r"categories\.beast\.collection\.pose_sampler: only a generated "
+                                          r"collection samples poses \(kind is 'folder'\)"):
+        load_catalog(path)
