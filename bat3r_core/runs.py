@@ -404,8 +404,8 @@ markdown artifact ``…-<stage>-drops`` and a section of the iteration summary (
 _TOP_REASONS = 3
 
 DROP_HINTS = {
-    "mask_mismatch": "run `bat3r asset check {category}` (the asset Blender renders and the rig bat3r ray-casts "
-                     "disagree: scale, up axis, skin)",
+    "mask_mismatch": "run `bat3r asset check {asset} --category {category}{catalog}` (the asset Blender renders and "
+                     "the rig bat3r ray-casts disagree: scale, up axis, skin)",
     "bad_texture": "check categories.{category}.textures in the data catalog",
     "bad_envmap": "check categories.{category}.environment_maps in the data catalog",
     "bad_job": "the render jobs hold non-finite poses or cameras (see the plan stage)",
@@ -417,7 +417,8 @@ DROP_HINTS = {
     "empty_mask": "these masks have no foreground pixel (docs/collections.md, \"Bad files\")",
     "size_mismatch": "mask and image sizes differ (docs/collections.md, \"Bad files\")",
 }
-"""What to do about the most frequent drop status (``{category}`` is filled in); used in the failure message."""
+"""What to do about the most frequent drop status; ``{category}``, ``{asset}`` (the category's asset file) and
+``{catalog}`` (`` --catalog PATH`` or empty) are filled in by :func:`require_samples`."""
 
 STAGE_NOUNS = {"collection": "images", "test": "images", "collection-images": "renders", "test-images": "renders",
                "generated_collection": "renders",
@@ -582,15 +583,16 @@ class TooFewSamples(RuntimeError):
 
 
 def require_samples(drops: SampleDrops, need: SampleNeed, upstream: Iterable[SampleDrops] = (),
-                    category: str = "") -> SampleDrops:
+                    category: str = "", asset: str = "", catalog: str = "") -> SampleDrops:
     """Stop the run unless the stage kept at least ``need.n`` samples.
 
     The message names the stage, how many of its samples it dropped and why (the top statuses with a
     representative reason and an example file), what to do about the most frequent status (``DROP_HINTS``), what
     the next stage needs, and the upstream stages (``upstream``) that dropped samples, e.g. ``iteration 0 render:
-    25 of 32 renders dropped (78.1 %): mask_mismatch ×25 (…) — run `bat3r asset check toy` …; training needs at
-    least 8 (batch_size × world_size), 7 left — e.g. sample … in …``. Returns ``drops`` when there are enough;
-    raises :class:`TooFewSamples` otherwise.
+    25 of 32 renders dropped (78.1 %): mask_mismatch ×25 (…) — run `bat3r asset check assets/horse/horse.glb
+    --category horse` …; training needs at least 8 (batch_size × world_size), 7 left (e.g. sample … in …)``.
+    category, asset, catalog: fill the hint (``catalog``: the catalog file, when not the default one).
+    Returns ``drops`` when there are enough; raises :class:`TooFewSamples` otherwise.
     """
     if drops.n_ok >= need.n:
         return drops
@@ -598,7 +600,8 @@ def require_samples(drops: SampleDrops, need: SampleNeed, upstream: Iterable[Sam
         head = f"{drops.headline()}: {drops.reasons_text()}"
         top = drops.reasons[0].status if drops.reasons else ""
         if top in DROP_HINTS:
-            head += " — " + DROP_HINTS[top].format(category=category or "<category>")
+            head += " — " + DROP_HINTS[top].format(category=category or "<category>", asset=asset or "<asset>",
+                                                    catalog=f" --catalog {catalog}" if catalog else "")
     else:
         head = f"{drops.label}: {drops.n_ok} {drops.noun}, none dropped"
     msg = f"{head}; {need.consumer} needs at least {need.n} ({need.why}), {drops.n_ok} left"

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from bat3r_core.catalog import Catalog, load_catalog
+from bat3r_core.catalog import Catalog, default_catalog_path, load_catalog
 from bat3r_core.config_utils import ConfigError, replace_path, to_mapping
 from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
@@ -53,7 +53,9 @@ class Ablations:
 
 @dataclass(frozen=True)
 class RunSettings:
-    """Everything a bootstrap run needs, resolved (see the module docstring)."""
+    """Everything a bootstrap run needs, resolved (see the module docstring). ``catalog_file``: the data catalog
+    it was resolved from; ``source_asset``: the category's asset file as the catalog names it (``assets.asset`` is
+    the normalised GLB the stages load; ``generated:toy`` for the toy)."""
 
     layout: RunLayout
     category: str
@@ -78,6 +80,16 @@ class RunSettings:
     collection: dict[str, Any]
     test_split: dict[str, Any] | None
     ablations: Ablations
+    catalog_file: str = ""
+    source_asset: str = ""
+
+    def hint_context(self) -> dict[str, str]:
+        """What ``bat3r_core.runs.require_samples`` fills into its hint: the category, its asset file (none for the
+        generated toy) and the catalog file when it is not the default one."""
+        default = str(default_catalog_path().resolve())
+        return {"category": self.category,
+                "asset": "" if self.source_asset.startswith("generated:") else self.source_asset,
+                "catalog": "" if not self.catalog_file or self.catalog_file == default else self.catalog_file}
 
     def to_mapping(self) -> dict[str, Any]:
         """JSON-serialisable form (for ``manifest.json``)."""
@@ -202,7 +214,8 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
         body_frame=body_frame,
         collection=_collection(cat, cat.collection, run.collection_size, run.image_size, assets, body_frame),
         test_split=_collection(cat, cat.test_split, run.test_size, run.image_size, assets, body_frame),
-        ablations=ablations, **configs)
+        ablations=ablations, catalog_file=str(Path(catalog.path).resolve()),
+        source_asset=cat.asset if cat.is_generated else str(cat.resolve(cat.asset)), **configs)
 
 
 def recorded_run(category: str, run_name: str, catalog: Catalog | str | os.PathLike | None = None

@@ -127,8 +127,7 @@ class _Iteration:
                                max_failed_fraction=max_failed_fraction, label=f"iteration {self.iteration} {stage}")
             self.stages.append(result)
             if needs is not None:
-                require_samples(result.drops, needs, [r.drops for r in self.stages[:-1]],
-                                category=settings.category)
+                require_samples(result.drops, needs, [r.drops for r in self.stages[:-1]], **settings.hint_context())
         except (TooManyFailedShards, TooFewSamples) as exc:
             get_run_logger().error("%s", exc)
             publish_iteration_artifacts(settings.layout, self.iteration, self.stages, [], data_drops=self.data_drops,

@@ -47,7 +47,7 @@ def prepare_split(settings: RunSettings, split: str, spec: dict[str, Any],
     def check(result: StageResult) -> StageResult:
         results.append(result)
         if needs is not None:
-            require_samples(result.drops, needs, [r.drops for r in results[:-1]], category=settings.category)
+            require_samples(result.drops, needs, [r.drops for r in results[:-1]], **settings.hint_context())
         return result
 
     if spec["kind"] == "generated":

@@ -216,12 +216,12 @@ def test_too_few_samples_names_the_stage_the_reason_the_fix_and_the_need(tmp_pat
     need = runs.training_need(8)
     assert need == runs.SampleNeed(8, "training", "batch_size × world_size")
     with pytest.raises(runs.TooFewSamples) as info:
-        runs.require_samples(drops, need, category="horse")
+        runs.require_samples(drops, need, category="horse", asset="assets/horse/horse.glb", catalog="my.yaml")
     assert str(info.value) == (
         "iteration 0 render: 25 of 32 renders dropped (78.1 %): mask_mismatch ×25 (Blender mask and ray-cast "
-        "occupancy disagree (IoU 0.412 < 0.8)) — run `bat3r asset check horse` (the asset Blender renders and the "
-        "rig bat3r ray-casts disagree: scale, up axis, skin); training needs at least 8 (batch_size × world_size), "
-        f"7 left (e.g. sample c07 in {p0.parquet})")
+        "occupancy disagree (IoU 0.412 < 0.8)) — run `bat3r asset check assets/horse/horse.glb --category horse "
+        "--catalog my.yaml` (the asset Blender renders and the rig bat3r ray-casts disagree: scale, up axis, skin); "
+        f"training needs at least 8 (batch_size × world_size), 7 left (e.g. sample c07 in {p0.parquet})")
     assert info.value.drops == drops and info.value.need == need
     assert runs.require_samples(drops, runs.training_need(7)) is drops  # enough: the run goes on
     # samples lost upstream are named too; a pickled error keeps its message (Prefect, Dask)

@@ -189,6 +189,8 @@ def test_generated_collections_resolve_what_they_are_rendered_from(tmp_path, mon
     assert s.collection["asset"] == s.assets.asset and s.collection["textures"] == [] == list(s.assets.textures)
     assert s.collection["body_frame"] == s.body_frame and s.collection["prefix"] == "beast"
     assert s.collection["path"] == str(tmp_path / "gen" / "train" / "n16-r32")
+    assert (s.catalog_file, s.source_asset) == (str(path), str(tmp_path / "beast.glb"))
+    assert s.hint_context() == {"category": "beast", "asset": str(tmp_path / "beast.glb"), "catalog": str(path)}
     toy = resolve_run("toy", "tiny", "r1", catalog=str(path))
     assert toy.collection["pose_sampler"] == "toy_natural" and "asset" not in toy.collection  # built in-process
     data["categories"]["beast"]["collection"] = {"kind": "folder", "path": "photos", "pose_sampler": "random"}
