@@ -366,7 +366,11 @@ class FailureSummary:
 class TooManyFailedShards(RuntimeError):
     """More shards of a stage failed than the run allows; the message lists them."""
 
-    def __init__(self, summary: FailureSummary) -> None:
+    def __init__(self, summary: FailureSummary | str) -> None:
+        if isinstance(summary, str):  # unpickled (Prefect states, Dask): args == (message,)
+            super().__init__(summary)
+            self.summary = None
+            return
         super().__init__(f"stage {summary.describe()}\nThe failed fraction exceeds the limit "
                          f"(max_failed_fraction={summary.max_failed_fraction}); fix the cause and rerun with the "
                          f"same run name (completed shards are reused), or raise the limit.")

@@ -139,6 +139,9 @@ def test_failure_policy_continues_below_limit_and_fails_above():
                        ) as info:
         runs.apply_failure_policy("render", 4, [("part-00001", "a"), runs.ShardFailure("part-00003", "b")], 0.25)
     assert "part-00003: b" in str(info.value) and info.value.summary.failed_fraction == 0.5
+    import pickle
+
+    assert str(pickle.loads(pickle.dumps(info.value))) == str(info.value)  # survives Prefect/Dask serialisation
     with pytest.raises(runs.TooManyFailedShards, match="1 of 10 shards failed"):
         runs.apply_failure_policy("train", 10, [("model", "nan loss")], 0.0)
 
