@@ -96,3 +96,48 @@ def test_cli_asset_toy(tmp_path, capsys):
     assert main(["asset", "toy", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert out.is_file() and "27 joints" in text
+
+
+def test_asset_units_axes_and_auto_body_frame(catalog_copy, tmp_path, monkeypatch, toy_rig):
+    """A user asset in centimetres, Z-up: refused without asset_scale, normalised once with it (metres, Y-up),
+    and `body_frame: auto` resolved from the skeleton."""
+    import numpy as np
+
+    from bat3r_core.rig import Rig, RigError
+    from bat3r_core.rig_io import save_rig_glb
+
+    monkeypatch.delenv("BAT3R_STORAGE_ROOT", raising=False)
+    z_up = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # the toy's +Y up becomes +Z up, in centimetres
+    g = toy_rig.rest_transforms.copy()
+    g[:, :3, :3] = z_up @ g[:, :3, :3]
+    g[:, :3, 3] = 100.0 * g[:, :3, 3] @ z_up.T
+    cm = Rig(name="cm", rest_vertices=100.0 * toy_rig.rest_vertices @ z_up.T, faces=toy_rig.faces,
+             joint_names=toy_rig.joint_names, parents=toy_rig.parents, rest_transforms=g,
+             skin_weights=toy_rig.skin_weights, uvs=toy_rig.uvs)
+    save_rig_glb(cm, tmp_path / "cm.glb")
+
+    def category(scale):
+        def edit(d):
+            d["storage_root"] = str(tmp_path / "runs")
+            d["categories"]["cm"] = {**d["categories"]["horse"], "asset": str(tmp_path / "cm.glb"),
+                                     "up_axis": "+Z", "body_frame": "auto", "textures": []}
+            if scale is not None:
+                d["categories"]["cm"]["asset_scale"] = scale
+        return edit
+
+    cat = load_catalog(_edit(catalog_copy, category(None)))
+    with pytest.raises(RigError, match=r"236\.\d m long .*set `asset_scale: 0.01`"):
+        cat.asset_path("cm")
+    cat = load_catalog(_edit(catalog_copy, category(0.01)))
+    path = cat.asset_path("cm")
+    assert path.parent == tmp_path / "runs" / "_assets" and cat.asset_path("cm") == path  # normalised once
+    rig = cat.load_rig("cm")
+    np.testing.assert_allclose(np.sort(rig.rest_vertices, axis=0), np.sort(toy_rig.rest_vertices, axis=0),
+                               atol=1e-5)
+    frame = cat.body_frame("cm")
+    assert (frame.origin, frame.forward, frame.horizontal) == ("spine.2", ("spine.1", "spine.2"),
+                                                               ("thigh.L", "thigh.R"))
+    with pytest.raises(ConfigError, match=r"categories.cm.asset_scale: expected a positive number"):
+        load_catalog(_edit(catalog_copy, category(-1.0)))
+    with pytest.raises(ConfigError, match=r"categories.cm.up_axis: expected one of"):
+        load_catalog(_edit(catalog_copy, lambda d: d["categories"]["cm"].update(up_axis="up")))
