@@ -9,11 +9,14 @@ batch, and Adam is elementwise, so a batch gives the same numbers as fitting its
 (random choices are seeded by ``config.seed`` and the sample id, not the batch position).
 
 Vertices: the file rig may split vertices at UV seams or not share them at all (unindexed exports). Everything
-that needs the surface — correspondences, geodesics, control points, the initial similarity, the regulariser mesh,
-repulsion — runs on the **welded** rig (:func:`bat3r_core.topology.weld_rig`; ``FittingAsset.welded_rig``,
-``FittingAsset.welding``); control-point indices are welded vertices. What :func:`fit_batch` returns is on the
-file rig's own vertices (``posed_vertices (B, V, 3)``); file → welded lookups go through
-``welding.representative``.
+that needs the surface runs on the **fitting mesh** (``FittingAsset.fitting_rig``): the welded rig
+(:func:`bat3r_core.topology.weld_rig`; ``FittingAsset.welded_rig``, ``FittingAsset.welding``), refined by midpoint
+subdivision while its median edge is longer than ``config.densify_max_edge_fraction`` of the asset's length (a
+low-poly asset's nearest vertices are too far from the surface points for the data term; its first Vw vertices
+are the welded ones). Correspondences, geodesics, control points, the initial similarity and camera recovery read
+the fitting mesh; the regulariser mesh (edge, volume, repulsion) is the welded mesh or its decimated proxy. What
+:func:`fit_batch` returns is on the file rig's own vertices (``posed_vertices (B, V, 3)``, the file rig skinned
+with its own weights).
 
 Frames: predicted posed points are camera-frame points relative to the object depth (docs/CONVENTIONS.md), so the
 fitted global similarity maps the canonical frame into that frame. The world of the fitted scene is the canonical
@@ -31,7 +34,7 @@ import torch
 from bat3r_core.metrics import rms_chamfer, umeyama
 from bat3r_core.rig import Rig
 from bat3r_core.skinning import RigTensors, axis_angle_to_matrix, forward_kinematics
-from bat3r_core.topology import Welding, weld_rig
+from bat3r_core.topology import Welding, subdivide_rig, weld_rig
 
 from .camera import CameraEstimate, recover_camera
 from .config import FittingConfig
@@ -42,13 +45,39 @@ from .losses import (MeshRegularisers, RegulariserMesh, angle_term, data_term, f
                      regulariser_mesh, repulsion_term, scale_term)
 from .sampling import farthest_point_sampling
 
-__all__ = ["FittingAsset", "PointCloudInstance", "FitResult", "fit_batch", "LOSS_NAMES", "STATUS_TOO_FEW",
-           "STATUS_BAD_INPUT"]
+__all__ = ["FittingAsset", "PointCloudInstance", "FitResult", "fit_batch", "densify", "median_edge_length",
+           "LOSS_NAMES", "STATUS_TOO_FEW", "STATUS_BAD_INPUT"]
 
 LOSS_NAMES = ("data", "angle", "edge", "volume", "repulsion", "scale", "total")
 STATUS_TOO_FEW = "too_few_points"
 STATUS_BAD_INPUT = "bad_input"
 _INIT_IRLS_ITERATIONS = 3
+_MAX_DENSIFY_LEVELS = 6
+
+
+def median_edge_length(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Median length (metres) of the unique edges of a mesh: ``vertices`` (V, 3) metres, ``faces`` (F, 3) int;
+    0 for a mesh without faces."""
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) == 0:
+        return 0.0
+    e = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    v = np.asarray(vertices, dtype=np.float64)
+    return float(np.median(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1)))
+
+
+def densify(rig: Rig, max_median_edge: float) -> tuple[Rig, int]:
+    """Midpoint-subdivide ``rig`` (:func:`bat3r_core.topology.subdivide_rig`) until its median edge is at most
+    ``max_median_edge`` metres (0: never), at most 6 levels. Returns (rig, levels applied); the input's vertices
+    keep their indices."""
+    if not max_median_edge >= 0:
+        raise ValueError(f"max_median_edge must be >= 0 (metres), got {max_median_edge!r}")
+    levels = 0
+    while (max_median_edge > 0 and levels < _MAX_DENSIFY_LEVELS
+           and median_edge_length(rig.rest_vertices, rig.faces) > max_median_edge):
+        rig = subdivide_rig(rig)
+        levels += 1
+    return rig, levels
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,16 +88,19 @@ class FittingAsset:
         rig: the file rig (V vertices; outputs are on its vertices). tensors: its skinning tensors on ``device``.
         welded_rig: the rig on its welded mesh (Vw vertices, :func:`bat3r_core.topology.weld_rig`).
         welding: the :class:`~bat3r_core.topology.Welding` (file vertex → welded vertex, representatives).
-        welded_tensors: skinning tensors of ``welded_rig`` on ``device``.
+        fitting_rig: the mesh fitting runs on (Vf vertices): ``welded_rig`` after ``densify_levels`` levels of
+            :func:`~bat3r_core.topology.subdivide_rig`; its vertices ``[0, Vw)`` are ``welded_rig``'s.
+        densify_levels: subdivision levels applied (0: ``fitting_rig`` is ``welded_rig``).
+        fitting_tensors: skinning tensors of ``fitting_rig`` on ``device``.
         reg_mesh: the mesh of the edge/volume/repulsion terms (the welded mesh, or a decimated proxy of it; its
-            ``source_vertex`` are welded vertices).
+            ``source_vertex`` are welded vertices, hence also fitting-mesh vertices).
         reg_tensors: skinning tensors of ``reg_mesh``. regularisers: its edge/volume constants.
-        geodesics: :class:`~.geodesics.LandmarkGeodesics` over the welded vertices (farthest point sampling).
+        geodesics: :class:`~.geodesics.LandmarkGeodesics` over the fitting mesh (farthest point sampling).
         reg_geodesics: geodesics over the ``reg_mesh`` vertices (repulsion): an exact
             :class:`~.geodesics.DenseGeodesics` block when ``reg_mesh`` has at most
             ``config.geodesic_exact_max_vertices`` vertices, else the landmark estimates read through
             ``reg_mesh.source_vertex``.
-        vertex_index: KD-tree over the welded rest vertices.
+        vertex_index: KD-tree over the fitting mesh's rest vertices.
         geodesic_threshold: repulsion geodesic threshold for this asset, metres.
         left_right: (P, 2) int64 left/right joint pairs. device, dtype: of the tensors.
     """
@@ -77,7 +109,9 @@ class FittingAsset:
     tensors: RigTensors
     welded_rig: Rig
     welding: Welding
-    welded_tensors: RigTensors
+    fitting_rig: Rig
+    densify_levels: int
+    fitting_tensors: RigTensors
     reg_mesh: RegulariserMesh
     reg_tensors: RigTensors
     regularisers: MeshRegularisers
@@ -92,35 +126,38 @@ class FittingAsset:
     @staticmethod
     def prepare(rig: Rig, config: FittingConfig, cache_dir=None, device: str | torch.device = "cpu",
                 dtype: torch.dtype = torch.float32) -> "FittingAsset":
-        """Weld the rig, then precompute (and cache in ``cache_dir``, see :mod:`.geodesics`) what fitting it needs:
-        landmark geodesics, the regulariser mesh and its exact geodesic block, the KD-tree."""
+        """Weld the rig (and refine a coarse mesh), then precompute (and cache in ``cache_dir``, see
+        :mod:`.geodesics`) what fitting it needs: landmark geodesics, the regulariser mesh and its exact geodesic
+        block, the KD-tree."""
         if not isinstance(rig, Rig):
             raise TypeError(f"rig must be a bat3r_core.rig.Rig, got {type(rig).__name__}")
         if not isinstance(config, FittingConfig):
             raise TypeError(f"config must be a FittingConfig, got {type(config).__name__}")
         device = torch.device(device)
         welded, welding = weld_rig(rig, relative_tolerance=config.weld_relative_tolerance)
-        wv, wf = welded.rest_vertices, welded.faces
-        geo = load_or_compute_landmark_geodesics(wv, wf, cache_dir, num_landmarks=config.geodesic_landmarks)
         length = float(np.ptp(rig.rest_vertices, axis=0).max())
+        fitting, levels = densify(welded, config.densify_max_edge_fraction * length)
+        fv, ff = fitting.rest_vertices, fitting.faces
+        geo = load_or_compute_landmark_geodesics(fv, ff, cache_dir, num_landmarks=config.geodesic_landmarks)
         pairs = np.asarray(rig.left_right_pairs, dtype=np.int64).reshape(-1, 2)
-        reg_mesh = regulariser_mesh(wv, wf, welded.skin_weights, config.regulariser_max_vertices)
-        src = reg_mesh.source_vertex
+        reg_mesh = regulariser_mesh(welded.rest_vertices, welded.faces, welded.skin_weights,
+                                    config.regulariser_max_vertices)
+        src = reg_mesh.source_vertex  # welded vertices = the first Vw fitting-mesh vertices
         if len(src) <= config.geodesic_exact_max_vertices:
-            reg_geo = load_or_compute_geodesic_block(wv, wf, src, cache_dir)
-        elif not reg_mesh.is_proxy:
+            reg_geo = load_or_compute_geodesic_block(fv, ff, src, cache_dir)
+        elif not reg_mesh.is_proxy and levels == 0:
             reg_geo = geo
         else:
             reg_geo = SubsetGeodesics(geo, src)
         return FittingAsset(rig=rig, tensors=rig.tensors(dtype=dtype, device=device), welded_rig=welded,
-                            welding=welding, welded_tensors=welded.tensors(dtype=dtype, device=device),
-                            reg_mesh=reg_mesh,
+                            welding=welding, fitting_rig=fitting, densify_levels=levels,
+                            fitting_tensors=fitting.tensors(dtype=dtype, device=device), reg_mesh=reg_mesh,
                             reg_tensors=RigTensors.from_arrays(reg_mesh.rest_vertices, rig.parents,
                                                                rig.rest_transforms, reg_mesh.skin_weights,
                                                                dtype=dtype, device=device),
                             regularisers=MeshRegularisers.from_mesh(reg_mesh.rest_vertices, reg_mesh.faces,
                                                                     reg_mesh.skin_weights, dtype=dtype, device=device),
-                            geodesics=geo, reg_geodesics=reg_geo, vertex_index=VertexIndex(wv),
+                            geodesics=geo, reg_geodesics=reg_geo, vertex_index=VertexIndex(fv),
                             geodesic_threshold=config.geodesic_threshold_for(length),
                             left_right=torch.as_tensor(pairs, device=device), device=device, dtype=dtype)
 
@@ -162,8 +199,8 @@ class FitResult:
             similarity, metres, prediction frame.
         losses: name → (B,) final value of each loss term (unweighted) and ``total`` (weighted, as optimised).
         residual_chamfer: (B,) RMS bidirectional Chamfer between the inlier predicted posed points and the
-            distinct positions of ``posed_vertices`` (one per welded vertex, so seam copies do not count twice),
-            metres.
+            fitted mesh's distinct vertex positions (the fitting mesh posed like ``posed_vertices``: one point per
+            welded vertex, so seam copies do not count twice, plus the refinement's vertices), metres.
         inlier_ratio: (B,) inliers / points. mean_confidence: (B,) mean C of all points (NaN without confidence).
         num_points, num_inliers, num_control_points: (B,) int.
         cameras: per instance a :class:`~.camera.CameraEstimate` or None (unfitted / no pixels).
@@ -191,7 +228,7 @@ class FitResult:
 @dataclass
 class _Prepared:
     index: int
-    vertex: np.ndarray  # (n,) assigned welded vertex per control point
+    vertex: np.ndarray  # (n,) assigned fitting-mesh vertex per control point
     target: np.ndarray  # (n, 3) predicted posed points of the control points
     inlier_posed: np.ndarray  # (m, 3) predicted posed points of all inliers
 
@@ -329,9 +366,8 @@ def fit_batch(asset: FittingAsset, instances: list[PointCloudInstance], config: 
             for name in LOSS_NAMES:
                 out["losses"][name][k] = fitted["losses"][name][slot]
             out["num_control_points"][k] = len(prep.vertex)
-            out["residual_chamfer"][k] = rms_chamfer(prep.inlier_posed,
-                                                     fitted["posed_vertices"][slot][asset.welding.representative])
-            cameras[k] = _camera_of(asset, instances[k], fitted["world_vertices"][slot],
+            out["residual_chamfer"][k] = rms_chamfer(prep.inlier_posed, fitted["posed_fitting_vertices"][slot])
+            cameras[k] = _camera_of(asset, instances[k], fitted["world_fitting_vertices"][slot],
                                     fitted["global_rotation"][slot], config, fit_focal)
     return FitResult(sample_id=[str(i.sample_id) for i in instances], status=statuses, reason=reasons,
                      cameras=cameras, **out)
@@ -345,8 +381,8 @@ def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np
                config: FittingConfig, fit_focal: bool) -> CameraEstimate | None:
     """Camera of one fitted instance from its layer-0 pixels (None without pixels or intrinsics).
 
-    ``world_vertices`` (V, 3) are the file rig's posed vertices; correspondences index welded vertices and read
-    them through ``welding.representative``."""
+    ``world_vertices`` (Vf, 3): the fitting mesh posed by θ (unit bone scales, canonical frame), which the
+    correspondences index."""
     if inst.pixels is None or inst.intrinsics is None:
         return None
     layers = np.zeros(len(inst.pixels), dtype=np.int64) if inst.layers is None else np.asarray(inst.layers)
@@ -358,7 +394,7 @@ def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np
         front = corr.inlier
     if front.sum() < 2:
         return None
-    rotated = world_vertices[asset.welding.representative[corr.vertex[front]]] @ rotation.T  # (n, 3) fitted points, camera orientation
+    rotated = world_vertices[corr.vertex[front]] @ rotation.T  # (n, 3) fitted points, camera orientation
     seed = np.random.default_rng([config.seed, 7, _id_seed(inst.sample_id)])
     return recover_camera(rotation, rotated, np.asarray(inst.pixels, dtype=np.float64)[front],
                           np.asarray(inst.intrinsics, dtype=np.float64), rng=seed, fit_focal=fit_focal,
@@ -369,14 +405,14 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     """Adam over θ, log bone scales and the global similarity for the fittable instances."""
     dev, dt = asset.device, asset.dtype
     tensors, reg, reg_tensors = asset.tensors, asset.regularisers, asset.reg_tensors
-    welded_tensors = asset.welded_tensors
+    fit_tensors = asset.fitting_tensors
     b, num_j = len(prepared), asset.rig.num_joints
     n_max = max(len(p.vertex) for p in prepared)
     vertex = np.zeros((b, n_max), dtype=np.int64)
     target = np.zeros((b, n_max, 3))
     mask = np.zeros((b, n_max))
     s0, r0, t0 = np.ones(b), np.tile(np.eye(3), (b, 1, 1)), np.zeros((b, 3))
-    rest = asset.welded_rig.rest_vertices
+    rest = asset.fitting_rig.rest_vertices
     for i, p in enumerate(prepared):
         n = len(p.vertex)
         vertex[i, :n], target[i, :n], mask[i, :n] = p.vertex, p.target, 1.0
@@ -386,7 +422,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     target_t, mask_t = torch.as_tensor(target, **to), torch.as_tensor(mask, **to)
     r0_t, t0_t, logs0_t = torch.as_tensor(r0, **to), torch.as_tensor(t0, **to), torch.as_tensor(np.log(s0), **to)
     rest_h = torch.cat([tensors.rest_vertices, torch.ones(tensors.num_vertices, 1, **to)], 1)  # (V, 4) file rig
-    welded_rest_h = torch.cat([welded_tensors.rest_vertices, torch.ones(welded_tensors.num_vertices, 1, **to)], 1)
+    fit_rest_h = torch.cat([fit_tensors.rest_vertices, torch.ones(fit_tensors.num_vertices, 1, **to)], 1)
     reg_rest_h = torch.cat([reg_tensors.rest_vertices, torch.ones(reg_tensors.num_vertices, 1, **to)], 1)
 
     theta = torch.zeros(b, num_j, 3, **to, requires_grad=True)
@@ -418,7 +454,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             m_data = _skinning_matrices(tensors, forward_kinematics(tensors, th, scales))
         else:
             scales, m_data = torch.ones_like(log_bone), m_unscaled
-        ctrl = _skin_subset(welded_tensors, m_data, welded_rest_h, vertex_t)  # (B, N, 3) control vertices, scaled
+        ctrl = _skin_subset(fit_tensors, m_data, fit_rest_h, vertex_t)  # (B, N, 3) control vertices, scaled mesh
         rot = axis_angle_to_matrix(omega) @ r0_t
         scale = torch.exp(logs0_t + d_logs)
         trans = t0_t + d_trans
@@ -460,9 +496,11 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
         terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps)
         verts_u = _skin_all(tensors, m_unscaled, rest_h)  # the full file mesh, unit bone scales
         posed = scale[:, None, None] * verts_u @ rot.transpose(1, 2) + trans[:, None, :]
+        fit_u = _skin_all(fit_tensors, m_unscaled, fit_rest_h)  # the fitting mesh, unit bone scales
+        posed_fit = scale[:, None, None] * fit_u @ rot.transpose(1, 2) + trans[:, None, :]
         th = theta * joint_mask[None, :, None]
     cpu = lambda t: t.detach().cpu().numpy().astype(np.float64)  # noqa: E731
     return dict(excess_rotations=cpu(th), bone_scales=cpu(scales), global_scale=cpu(scale),
                 global_rotation=cpu(rot), global_translation=cpu(trans),
-                posed_vertices=posed.detach().cpu().numpy().astype(np.float32), world_vertices=cpu(verts_u),
-                losses={k: cpu(v) for k, v in terms.items()})
+                posed_vertices=posed.detach().cpu().numpy().astype(np.float32), world_fitting_vertices=cpu(fit_u),
+                posed_fitting_vertices=cpu(posed_fit), losses={k: cpu(v) for k, v in terms.items()})

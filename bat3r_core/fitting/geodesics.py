@@ -11,7 +11,8 @@ across pairs of triangles, which removes most of the zig-zag excess. Fitting run
 landmarks chosen by farthest point sampling under the graph metric itself, one exact Dijkstra row from each,
 ``(L, V)`` float32. ``d(a, b)`` is estimated through the landmarks nearest to its two ends,
 ``min(d(a, l_a) + d(l_a, b), d(b, l_b) + d(l_b, a))`` — an upper bound of the graph distance, exact when ``a`` or
-``b`` is a landmark, and exact everywhere when ``V <= L`` (every vertex is a landmark). Memory ``O(L · V)``.
+``b`` is a landmark, and exact everywhere when ``V <= L`` (every vertex is a landmark). Memory ``2 · L · V``
+float32 (the rows and their transpose).
 
 **Exact blocks** (:func:`load_or_compute_geodesic_block`, what the repulsion term reads): exact distances among a
 bounded set of vertices (the regulariser proxy's), from Dijkstra rows of those vertices only, computed in chunks
@@ -22,11 +23,13 @@ against (tests, ``docs/fitting.md``); fitting never calls it. Both cached kinds 
 ``<cache_dir>/geodesic-<kind>-<hash>.npz`` where the hash covers the vertex coordinates, the faces, the graph kind
 and the method's parameters.
 
-Every geodesic object here offers ``distances_from(source, targets)`` and ``pair_distances(a, b)`` (metres,
-float64) and ``num_vertices``; farthest point sampling and the repulsion pairs take any of them.
+Every geodesic object here offers ``distances_from(source, targets)``, ``distance_rows(targets)`` (the same as a
+function of the source, per-target lookups done once) and ``pair_distances(a, b)`` (metres, float64) and
+``num_vertices``; farthest point sampling and the repulsion pairs take any of them.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 from dataclasses import dataclass
@@ -189,6 +192,11 @@ class DenseGeodesics:
         """(P,) float64 metres between vertices ``a[k]`` and ``b[k]``."""
         return self.matrix[np.asarray(a), np.asarray(b)].astype(np.float64)
 
+    def distance_rows(self, targets: np.ndarray):
+        """A function ``source -> (N,) float64`` distances from ``source`` to ``targets`` (N,)."""
+        t = np.asarray(targets, dtype=np.int64)
+        return lambda source: self.matrix[int(source)].take(t).astype(np.float64)
+
 
 @dataclass(frozen=True, eq=False)
 class LandmarkGeodesics:
@@ -199,12 +207,18 @@ class LandmarkGeodesics:
         rows: (L, V) float32 metres, exact graph distances from each landmark to every vertex.
         nearest: (V,) int64 index into ``landmarks`` of each vertex's nearest landmark.
         offset: (V,) float32 metres, distance of each vertex to that landmark (0 at landmarks).
+        columns: (V, L) float32, ``rows`` transposed and contiguous (a vertex's distances to every landmark in
+            one cache-friendly row; farthest point sampling reads one per step). Derived, not cached.
     """
 
     landmarks: np.ndarray
     rows: np.ndarray
     nearest: np.ndarray
     offset: np.ndarray
+    columns: np.ndarray = dataclasses.field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "columns", np.ascontiguousarray(self.rows.T))
 
     @property
     def num_vertices(self) -> int:
@@ -221,7 +235,8 @@ class LandmarkGeodesics:
 
     @property
     def nbytes(self) -> int:
-        return int(self.landmarks.nbytes + self.rows.nbytes + self.nearest.nbytes + self.offset.nbytes)
+        return int(self.landmarks.nbytes + self.rows.nbytes + self.columns.nbytes + self.nearest.nbytes
+                   + self.offset.nbytes)
 
     def distances_from(self, source: int, targets: np.ndarray) -> np.ndarray:
         """(N,) float64 metres, estimated distances from vertex ``source`` to each of ``targets`` (N,)."""
@@ -232,6 +247,24 @@ class LandmarkGeodesics:
         d = np.minimum(via_source, via_target)
         d[t == s] = 0.0
         return d
+
+    def distance_rows(self, targets: np.ndarray):
+        """A function ``source -> (N,) float64`` giving :meth:`distances_from` ``(source, targets)``, with the
+        per-target lookups (nearest landmark, offset) done once: what farthest point sampling calls per step."""
+        t = np.asarray(targets, dtype=np.int64)
+        near_t, off_t = self.nearest[t], self.offset[t]
+
+        def row(source: int) -> np.ndarray:
+            s = int(source)
+            via_source = self.rows[self.nearest[s]].take(t)
+            via_source += self.offset[s]
+            via_target = self.columns[s].take(near_t)
+            via_target += off_t
+            d = np.minimum(via_source, via_target).astype(np.float64)
+            d[t == s] = 0.0
+            return d
+
+        return row
 
     def pair_distances(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """(P,) float64 metres, estimated distances between vertices ``a[k]`` and ``b[k]``."""
@@ -266,6 +299,10 @@ class SubsetGeodesics:
     def pair_distances(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return self.base.pair_distances(self.index[np.asarray(a)], self.index[np.asarray(b)])
 
+    def distance_rows(self, targets: np.ndarray):
+        rows = self.base.distance_rows(self.index[np.asarray(targets)])
+        return lambda source: rows(int(self.index[int(source)]))
+
 
 def _check_landmarks(num_landmarks) -> int:
     if isinstance(num_landmarks, bool) or not isinstance(num_landmarks, (int, np.integer)) or num_landmarks < 1:
@@ -283,7 +320,7 @@ def landmark_geodesics(vertices: np.ndarray, faces: np.ndarray, num_landmarks: i
         vertices: (V, 3) metres (a welded mesh). faces: (F, 3) int. num_landmarks: L >= 1.
         graph: see the module docstring.
     Returns:
-        :class:`LandmarkGeodesics`; memory ``L · V`` float32 plus ``O(V)``.
+        :class:`LandmarkGeodesics`; memory ``2 · L · V`` float32 plus ``O(V)``.
     """
     _check_graph(graph)
     v, f = _check_mesh(vertices, faces)

@@ -32,7 +32,7 @@ def farthest_point_sampling(offsets: np.ndarray, vertices: np.ndarray, geodesics
         offsets: (N,) metres, distance of each predicted canonical point to its assigned vertex.
         vertices: (N,) int, the assigned canonical vertex ``j*(n)``.
         geodesics: geodesic distances between canonical vertices, metres: an object with
-            ``distances_from(source, targets)`` (:class:`~.geodesics.LandmarkGeodesics`,
+            ``distance_rows(targets)`` (:class:`~.geodesics.LandmarkGeodesics`,
             :class:`~.geodesics.DenseGeodesics`, ...).
         num_samples: number of control points wanted (>= 1).
         rng: start-point generator (the first point is uniform over the N points).
@@ -45,8 +45,8 @@ def farthest_point_sampling(offsets: np.ndarray, vertices: np.ndarray, geodesics
         raise ValueError(f"offsets and vertices must both have shape (N,), got {off.shape} and {vert.shape}")
     if isinstance(num_samples, bool) or not isinstance(num_samples, (int, np.integer)) or num_samples < 1:
         raise ValueError(f"num_samples must be an int >= 1, got {num_samples!r}")
-    if not callable(getattr(geodesics, "distances_from", None)):
-        raise TypeError("geodesics must be a geodesic object with distances_from(source, targets) (e.g. "
+    if not callable(getattr(geodesics, "distance_rows", None)):
+        raise TypeError("geodesics must be a geodesic object with distance_rows(targets) (e.g. "
                         f"fitting.geodesics.LandmarkGeodesics or DenseGeodesics), got {type(geodesics).__name__}")
     n = len(off)
     if n == 0:
@@ -54,11 +54,12 @@ def farthest_point_sampling(offsets: np.ndarray, vertices: np.ndarray, geodesics
     k = min(int(num_samples), n)
     chosen = np.empty(k, dtype=np.int64)
     chosen[0] = int(rng.integers(n))
+    geo_from = geodesics.distance_rows(vert)  # source vertex -> (N,) geodesic distances to every point's vertex
     best = np.full(n, np.inf)
     for s in range(1, k):
         c = chosen[s - 1]
         # (N,) D from the last chosen point to every point
-        d = off[c] + geodesics.distances_from(vert[c], vert) + off
+        d = off[c] + geo_from(vert[c]) + off
         np.minimum(best, d, out=best)
         best[chosen[:s]] = -np.inf
         chosen[s] = int(np.argmax(best))
