@@ -231,7 +231,8 @@ def propose_body_frame(rig: Rig, seed: int = 0) -> BodyFrameProposal:
         a = origin = spine[0]
     if proj[b] < proj[a]:
         a, b = b, a
-    left, right = hind if side[hind[0]] > side[hind[1]] else hind[::-1]
+    left_axis = np.cross([0.0, 1.0, 0.0], along)  # the animal's left: up x forward (+X for a +Z-facing asset)
+    left, right = hind if joints[hind[0]] @ left_axis > joints[hind[1]] @ left_axis else hind[::-1]
     return BodyFrameProposal(origin=names[origin], forward=(names[a], names[b]), horizontal=(names[left], names[right]),
                              spine=tuple(names[j] for j in spine),
                              legs=tuple((names[x], names[y]) for x, y in legs), lateral_axis=lateral,
