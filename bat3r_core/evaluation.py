@@ -342,12 +342,17 @@ def evaluate_run(run_dir: str | os.PathLike) -> Path:
     """Recompute ``run_dir/metrics.parquet`` from every ``iter-NN/evaluate`` shard of a run.
 
     Rows of (iteration, split) pairs that have per-sample rows are replaced; other rows already in the file are
-    kept. Returns the path of ``metrics.parquet``. Raises ``FileNotFoundError`` when ``run_dir`` is not a folder.
+    kept. The ``collection`` rows (mask IoUs without 3D ground truth) come from the ``iter-NN/evaluate/collection``
+    shards (``bat3r_core.evaluation_masks.aggregate_collection``). Returns the path of ``metrics.parquet``.
+    Raises ``FileNotFoundError`` when ``run_dir`` is not a folder.
     """
+    from bat3r_core.evaluation_masks import aggregate_collection, read_collection_rows
+
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder {run_dir} does not exist")
-    return upsert_metrics(run_dir, aggregate(read_sample_rows(run_dir)))
+    rows = aggregate(read_sample_rows(run_dir)) + aggregate_collection(read_collection_rows(run_dir))
+    return upsert_metrics(run_dir, rows)
 
 
 # ------------------------------------------------------------------------------------ the evaluate stage

@@ -13,6 +13,7 @@ Everything here is pure numpy/scipy math on point sets in **metres**; the ``*_cm
 * **Model-view alignment** (``model_view_alignment``): scale and translation only (no rotation), so a wrong
   camera rotation is penalised. See its docstring for the exact procedure.
 * **Camera rotation error** (``rotation_error_deg``): geodesic angle between two rotation matrices, degrees.
+* **Mask IoU** (``mask_iou``): ``|A ∩ B| / |A ∪ B|`` of two boolean images (1.0 when both are empty).
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ __all__ = [
     "model_view_alignment",
     "rotation_error_deg",
     "evaluate_sample",
+    "mask_iou",
 ]
 
 M_TO_CM = 100.0
@@ -359,3 +361,12 @@ def evaluate_sample(pred_points: np.ndarray, gt_points: np.ndarray, *, up: Seque
         cd_cm=full.rms_cd_cm, mv_cd_cm=mv.rms_cd_cm, rot_err_deg=float(rot),
         icp_scale=full.similarity.scale, icp_start_deg=full.start_angle_deg, mv_scale=mv.similarity.scale,
         n_pred=int(np.asarray(pred_points).shape[0]), n_gt=int(np.asarray(gt_points).shape[0]))
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two boolean masks of the same shape (e.g. (H, W)); 1.0 when both are empty."""
+    a, b = np.asarray(a, dtype=bool), np.asarray(b, dtype=bool)
+    if a.shape != b.shape:
+        raise ValueError(f"mask_iou: masks must have the same shape, got {a.shape} and {b.shape}")
+    union = int(np.logical_or(a, b).sum())
+    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)

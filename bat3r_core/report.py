@@ -6,6 +6,8 @@
 * ``metrics.parquet``: ``bat3r_core.evaluation.METRICS_SCHEMA`` rows (computed from the per-sample rows when the
   file is missing).
 * ``iter-NN/evaluate/part-*.parquet``: per-sample rows, ``bat3r_core.evaluation.SAMPLE_SCHEMA``.
+* the ``split == "collection"`` rows of ``metrics.parquet`` (mask IoUs without 3D ground truth,
+  ``bat3r_core.evaluation_masks``; computed from ``iter-NN/evaluate/collection`` when the file lacks them).
 * ``iter-NN/fit/part-*.parquet``: fit rows with ``sample_id, status, reason``, final losses as ``loss_*`` float
   columns, optionally ``joint_err_cm, vertex_err_cm, angle_err_deg`` (pose errors where ground truth exists, see
   ``bat3r_core.analysis.pose_errors``) and the estimated body-centric camera ``azimuth_deg, elevation_deg,
@@ -37,7 +39,7 @@ from matplotlib.collections import PolyCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
-from bat3r_core import analysis, evaluation, shards
+from bat3r_core import analysis, evaluation, evaluation_masks, shards
 from bat3r_core.shards import atomic_write_bytes
 
 __all__ = ["SECTION_IDS", "QUALITATIVE_FILE", "QualitativeInputs", "write_report_inputs", "read_report_inputs",
@@ -46,12 +48,14 @@ __all__ = ["SECTION_IDS", "QUALITATIVE_FILE", "QualitativeInputs", "write_report
 REPORT_FILE = "report.html"
 QUALITATIVE_FILE = "qualitative.npz"
 FIT_STAGE = "fit"
-SECTION_IDS = ("summary", "metrics-over-iterations", "ablation-table", "per-cluster", "failure-rates",
+SECTION_IDS = ("summary", "metrics-over-iterations", "ablation-table", "collection-masks", "per-cluster",
+               "failure-rates",
                "camera-distribution", "angle-fits", "pseudo-labels", "qualitative")
 _TITLES = {
     "summary": "Run summary",
     "metrics-over-iterations": "Metrics across iterations",
     "ablation-table": "Ablation-style table",
+    "collection-masks": "Collection mask IoU (no 3D ground truth)",
     "per-cluster": "Per-cluster mCD",
     "failure-rates": "Failure rates: azimuth × pose complexity",
     "camera-distribution": "Camera distribution",
@@ -239,6 +243,13 @@ def _load(run_dir: Path) -> _RunData:
             evaluation.aggregate(samples), schema=evaluation.METRICS_SCHEMA), metrics, errors)
         if metrics.num_rows:
             note = "metrics.parquet not written yet: values computed from the per-sample rows."
+    if evaluation_masks.COLLECTION_SPLIT not in metrics.column("split").to_pylist():
+        extra = _guarded("collection mask rows", lambda: evaluation_masks.aggregate_collection(
+            evaluation_masks.read_collection_rows(run_dir)), [], errors)
+        if extra:
+            merged = metrics.to_pylist() + extra
+            keys = list(dict.fromkeys(k for r in merged for k in r))
+            metrics = pa.table({k: pa.array([r.get(k) for r in merged]) for k in keys})
     fits, qual = {}, {}
     for it, d in evaluation.iteration_dirs(run_dir):
         t = _guarded(f"iteration {it} fit rows", lambda: shards.read_table(d / FIT_STAGE), None, errors)
@@ -264,11 +275,19 @@ def _section_summary(d: _RunData) -> str:
     parts.extend(f'<p class="error">Could not read {html.escape(e)}</p>' for e in d.load_errors)
     if d.metrics.num_rows:
         last = d.metrics.to_pylist()
-        split = _main_split([r["split"] for r in last])
-        row = [r for r in last if r["split"] == split][-1]
-        parts.append(f'<p class="headline">Latest ({split}, iteration {row["iteration"]}): mCD '
-                     f'<b>{_fmt(row["mcd_cm"])} cm</b>, {_fmt(row["pct_mcd_over_5cm"], 1)} % over 5 cm, '
-                     f'ΔR {_fmt(row["rot_err_deg"])}°, n = {row["n"]}.</p>')
+        split = _main_split([r["split"] for r in last if r["split"] != evaluation_masks.COLLECTION_SPLIT])
+        if split is not None:
+            row = [r for r in last if r["split"] == split][-1]
+            parts.append(f'<p class="headline">Latest ({split}, iteration {row["iteration"]}): mCD '
+                         f'<b>{_fmt(row["mcd_cm"])} cm</b>, {_fmt(row["pct_mcd_over_5cm"], 1)} % over 5 cm, '
+                         f'ΔR {_fmt(row["rot_err_deg"])}°, n = {row["n"]}.</p>')
+        coll = _collection_rows(d)
+        if coll:
+            row = coll[-1]
+            parts.append(f'<p class="headline">Latest (collection, iteration {row["iteration"]}): '
+                         f'predictor mask IoU <b>{_fmt(row.get("pred_mask_iou"), 3)}</b> (n = {row["n"]}), '
+                         f'reprojected-fit mask IoU <b>{_fmt(row.get("fit_mask_iou"), 3)}</b> '
+                         f'({row.get("n_fits") or 0} fits).</p>')
     return "".join(parts)
 
 
@@ -277,9 +296,9 @@ _METRIC_PLOTS = [("mcd_cm", "mCD (cm)"), ("pct_mcd_over_5cm", "% samples with CD
 
 
 def _section_metrics(d: _RunData) -> str:
-    if d.metrics.num_rows == 0:
+    rows = [r for r in d.metrics.to_pylist() if r["split"] != evaluation_masks.COLLECTION_SPLIT]
+    if not rows:
         return _note("No metrics yet: they appear once an iteration has been evaluated.")
-    rows = d.metrics.to_pylist()
     splits = sorted({r["split"] for r in rows})
     fig = Figure(figsize=(3.2 * len(_METRIC_PLOTS), 3.0))
     for k, (col, label) in enumerate(_METRIC_PLOTS):
@@ -300,9 +319,9 @@ def _section_metrics(d: _RunData) -> str:
 
 
 def _section_ablation(d: _RunData) -> str:
-    if d.metrics.num_rows == 0:
+    rows = [r for r in d.metrics.to_pylist() if r["split"] != evaluation_masks.COLLECTION_SPLIT]
+    if not rows:
         return _note("No metrics yet.")
-    rows = d.metrics.to_pylist()
     has_variant = "variant" in d.metrics.column_names
     header = (["variant"] if has_variant else []) + ["iteration", "split", "n", "failed", "mCD (cm)",
                                                      "% mCD > 5 cm", "ΔR (°)", "RMS CD (cm)", "MV RMS CD (cm)"]
@@ -312,6 +331,39 @@ def _section_ablation(d: _RunData) -> str:
     return _table(header, body, "num") + (
         "<p class=\"caption\">mCD: mean over samples of the per-sample RMS Chamfer distance after ICP with scale; "
         "RMS CD: root mean square of the same; MV: model-view alignment (scale and translation only).</p>")
+
+
+def _collection_rows(d: _RunData) -> list[dict]:
+    rows = [r for r in d.metrics.to_pylist() if r["split"] == evaluation_masks.COLLECTION_SPLIT]
+    return sorted(rows, key=lambda r: r["iteration"])
+
+
+def _section_collection_masks(d: _RunData) -> str:
+    rows = _collection_rows(d)
+    if not rows:
+        return _note("No collection mask IoUs yet: they appear once an iteration's predictor has predicted the "
+                     "collection.")
+    body = [[_iter_label(r["iteration"]), r["n"], r.get("n_failed"), _fmt(r.get("pred_mask_iou"), 3),
+             r.get("n_fits") or 0, _fmt(r.get("fit_mask_iou"), 3)] for r in rows]
+    table = _table(["iteration", "images", "failed", "Φ mask IoU", "fits", "fit mask IoU"], body, "num")
+    fig = Figure(figsize=(5.0, 3.0))
+    ax = fig.add_subplot(1, 1, 1)
+    x = [r["iteration"] for r in rows]
+    for c, (col, label) in enumerate((("pred_mask_iou", "predictor Φ_i (occupancy > 0.5)"),
+                                      ("fit_mask_iou", "reprojected fits"))):
+        y = [np.nan if r.get(col) is None else r[col] for r in rows]
+        ax.plot(x, y, marker="o", color=_COLORS[c], label=label)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("mean mask IoU")
+    ax.set_ylim(0.0, 1.02)
+    ax.grid(alpha=0.3)
+    ax.xaxis.get_major_locator().set_params(integer=True)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return table + _png(fig, "collection mask IoU across iterations") + (
+        "<p class=\"caption\">Mean over the collection images (at the model's crop) of the IoU with their masks: "
+        "Φ_i's layer-0 occupancy, and the silhouette of iteration i's fitted meshes (the pseudo-labels Φ_i was "
+        "trained on; none at iteration 0) seen through their recovered cameras.</p>")
 
 
 def _cluster_samples(samples: pa.Table) -> tuple[pa.Table, str]:
@@ -661,6 +713,7 @@ _SECTIONS: dict[str, Callable[[_RunData], str]] = {
     "summary": _section_summary,
     "metrics-over-iterations": _section_metrics,
     "ablation-table": _section_ablation,
+    "collection-masks": _section_collection_masks,
     "per-cluster": _section_clusters,
     "failure-rates": _section_failures,
     "camera-distribution": _section_cameras,

@@ -12,7 +12,9 @@ from flows._fanout import StageResult, artifact_key
 __all__ = ["summary_markdown", "publish_iteration_artifacts", "METRIC_COLUMNS"]
 
 METRIC_COLUMNS = ("iteration", "split", "n", "n_failed", "mcd_cm", "pct_mcd_over_5cm", "rot_err_deg", "rms_cd_cm",
-                  "mv_rms_cd_cm")
+                  "mv_rms_cd_cm", "pred_mask_iou", "fit_mask_iou", "n_fits")
+"""Columns of the dashboard's metrics table: ``metrics.parquet``'s test-split metrics and the collection's mask IoUs
+(``bat3r_core.evaluation_masks``; empty cells where a row has none)."""
 
 
 def _fmt(v: Any) -> str:

@@ -9,15 +9,19 @@ from prefect import task
 from bat3r_core import evaluation, report, shards
 from tasks._cache import shard_input_files, stage_task
 
-__all__ = ["update_metrics", "build_report", "evaluation_inputs", "evaluate_shard", "pseudo_label_quality"]
+__all__ = ["update_metrics", "build_report", "evaluation_inputs", "evaluate_shard", "pseudo_label_quality",
+           "evaluate_collection_shard"]
 
 
 def evaluation_inputs(run_dir: str) -> list[Path]:
-    """Every file of the complete ``iter-NN/evaluate`` shards of a run, in iteration and shard order."""
+    """Every file of the complete ``iter-NN/evaluate`` and ``iter-NN/evaluate/collection`` shards of a run, in
+    iteration and shard order."""
+    from bat3r_core.evaluation_masks import COLLECTION_ROWS_DIR
+
     out = []
     for _, it_dir in evaluation.iteration_dirs(run_dir):
-        stage = it_dir / "evaluate"
-        out += [f for i in shards.list_shards(stage) for f in shard_input_files(stage, i)]
+        for stage in (it_dir / "evaluate", it_dir / "evaluate" / COLLECTION_ROWS_DIR):
+            out += [f for i in shards.list_shards(stage) for f in shard_input_files(stage, i)]
     return out
 
 
@@ -83,3 +87,29 @@ def pseudo_label_quality(fit_dir: str, out_dir: str, config: dict) -> dict:
     path, summary = evaluation.write_pseudo_label_errors(
         fit_dir, evaluation.load_ground_truth(config["ground_truth"]), load_rig(config["asset"]), out_dir)
     return {"stage": "pseudo_labels", "files": [str(path)], "content_hash": shards.content_hash([path]), **summary}
+
+
+def _collection_inputs(p: dict) -> list[Path]:
+    files = [Path(p["config"]["asset"])] + shard_input_files(p["predictions_dir"], p["index"]) \
+        + shard_input_files(p["collection_dir"], p["index"])
+    if p.get("fit_dir") and p["index"] in shards.list_shards(p["fit_dir"]):
+        files += shard_input_files(p["fit_dir"], p["index"])
+    return files
+
+
+@stage_task("evaluate_collection", "bat3r_core.evaluation_masks", inputs=_collection_inputs,
+            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
+            task_run_name="evaluate-collection-{index}")
+def evaluate_collection_shard(predictions_dir: str, index: int, collection_dir: str, fit_dir: str | None,
+                              out_dir: str, config: dict) -> dict:
+    """Mask IoUs without 3D ground truth (``bat3r_core.evaluation_masks.evaluate_collection_shard``): Φ_i's
+    predictions of collection shard ``index`` and this iteration's fits of it (``fit_dir``, None at iteration 0)
+    against the collection masks → shard ``index`` of ``out_dir``. config: ``{"asset", "iteration"}``.
+    Returns the shard record."""
+    from bat3r_core.evaluation_masks import evaluate_collection_shard as run
+    from bat3r_core.rig_io import load_rig
+    from bat3r_core.runs import shard_record
+
+    rig = load_rig(config["asset"]) if fit_dir and index in shards.list_shards(fit_dir) else None
+    paths = run(predictions_dir, index, collection_dir, fit_dir, rig, int(config["iteration"]), out_dir)
+    return shard_record("evaluate_collection", index, paths)

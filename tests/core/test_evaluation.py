@@ -159,3 +159,123 @@ def test_ground_truth_camera_sees_the_photo_through_the_crop():
     np.testing.assert_allclose(uv_crop, crop.apply(uv_photo), atol=1e-9)
     np.testing.assert_allclose(depth, depth_photo)
     assert (cam.width, cam.height) == (64, 64)
+
+
+# ------------------------------------------------------------------ mask IoUs without 3D ground truth
+
+
+def test_mask_iou_and_predicted_mask_against_hand_computation():
+    from bat3r_core.evaluation_masks import predicted_mask
+    from bat3r_core.metrics import mask_iou
+
+    a = np.zeros((8, 8), bool)
+    a[0:4, 0:4] = True                      # 16 pixels
+    b = np.zeros((8, 8), bool)
+    b[2:6, 2:6] = True                      # 16 pixels, 4 shared: IoU 4 / 28
+    assert mask_iou(a, b) == pytest.approx(4 / 28)
+    assert mask_iou(a, a) == 1.0 and mask_iou(a, ~a) == 0.0
+    assert mask_iou(np.zeros((3, 3), bool), np.zeros((3, 3), bool)) == 1.0
+    with pytest.raises(ValueError, match="same shape"):
+        mask_iou(a, b[:4])
+    occ = np.zeros((8, 8, 2), np.float16)
+    occ[..., 0][a] = 0.7
+    occ[0, 0, 0] = 0.5                      # exactly 0.5 is not occupied (inference keeps > 0.5)
+    occ[..., 1] = 0.9                       # deeper layers do not count
+    pred = predicted_mask(occ)
+    assert pred.sum() == 15 and not pred[0, 0]
+    assert mask_iou(pred, b) == pytest.approx(4 / 27)
+
+
+def _toy_view(toy_rig, scale=1.3):
+    """A toy sample: pose, global similarity and camera, its ray-cast mask through the collection's crop, and the
+    ground-truth fit row in the fit shards' convention (world = unscaled posed mesh, canonical frame)."""
+    import torch
+
+    from bat3r_core.cameras import PinholeCamera, look_at
+    from bat3r_core.metrics import rotation_about_axis
+    from bat3r_core.pointmaps import dual_point_maps
+    from bat3r_core.poses import sample_toy_natural_poses
+    from bat3r_core.predictor.collection import crop_to_square
+    from bat3r_core.skinning import skin
+
+    theta, _ = sample_toy_natural_poses(1, seed=7)
+    theta = theta[0]
+    r_g = rotation_about_axis(np.array([0.0, 1.0, 0.0]), 40.0)
+    t_g = np.array([0.1, -0.05, 0.2])
+    verts = skin(toy_rig.tensors(dtype=torch.float64), torch.as_tensor(theta)[None]).vertices[0].numpy()
+    world = scale * verts @ r_g.T + t_g
+    r_c, t_c = look_at(np.array([2.5, 3.0, 8.0]), world.mean(axis=0), np.array([0.0, 1.0, 0.0]))
+    photo = PinholeCamera.from_fov(35.0, 640, 480, R=r_c, t=t_c)
+    full = dual_point_maps(world, toy_rig.rest_vertices, toy_rig.faces, photo, num_layers=1).occupancy[..., 0]
+    _, mask, crop = crop_to_square(np.zeros((480, 640, 3), np.uint8), full, 64)
+    k = crop.intrinsics(photo.K)
+    row = {"sample_id": "s0", "status": "ok", "reason": "", "excess_rotations": theta.ravel().tolist(),
+           "fx": k[0, 0], "fy": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "width": 64, "height": 64,
+           "camera_rotation": (r_c @ r_g).ravel().tolist(),
+           "camera_translation": ((r_c @ t_g + t_c) / scale).tolist()}
+    return mask, row
+
+
+def test_reprojected_ground_truth_fit_matches_the_rendered_mask_and_a_wrong_camera_does_not(toy_rig):
+    from bat3r_core.evaluation_masks import fit_silhouette
+    from bat3r_core.metrics import mask_iou
+
+    mask, row = _toy_view(toy_rig)
+    assert 300 < mask.sum() < 0.9 * mask.size
+    sil = fit_silhouette(toy_rig, row)
+    assert sil.shape == (64, 64)
+    assert mask_iou(sil, mask) > 0.97       # photo mask resampled to the crop (nearest) vs ray casting at the crop
+    t = np.asarray(row["camera_translation"])
+    shifted = {**row, "camera_translation": (t + [1.0, 0.0, 0.0]).tolist()}  # the body's length sideways
+    assert mask_iou(fit_silhouette(toy_rig, shifted), mask) < 0.2
+    flipped = {**row, "camera_rotation": (np.diag([-1.0, -1.0, 1.0]) @ np.reshape(row["camera_rotation"], (3, 3))
+                                          ).ravel().tolist(),
+               "camera_translation": (np.diag([-1.0, -1.0, 1.0]) @ t).tolist()}  # upside-down about the centre
+    assert mask_iou(fit_silhouette(toy_rig, flipped), mask) < 0.5
+    assert fit_silhouette(toy_rig, {**row, "status": "too_few_points"}) is None
+
+
+def test_collection_rows_aggregate_into_metrics_rows(toy_rig, tmp_path):
+    from bat3r_core import evaluation_masks as M
+    from bat3r_core.metrics import mask_iou
+    from bat3r_core.shards import write_shard
+
+    mask0, fit0 = _toy_view(toy_rig)
+    mask1 = np.zeros((64, 64), bool)
+    mask1[10:30, 10:40] = True                                   # 600 pixels
+    mask2 = mask1.copy()
+    occ = np.zeros((3, 64, 64, 2), np.float16)
+    occ[0, ..., 0][mask0] = 0.9                                  # s0: the whole mask: IoU 1
+    occ[1, 10:20, 10:40, 0] = 0.8                                # s1: half of it: IoU 300 / 600
+    write_shard(tmp_path / "pred", 0, [{"sample_id": s, "status": st, "reason": rs} for s, st, rs in
+                                       [("s0", "ok", ""), ("s1", "ok", ""), ("s2", "empty", "no foreground")]],
+                arrays={"occupancy": occ})
+    write_shard(tmp_path / "coll", 0, [{"sample_id": s, "status": "ok", "reason": ""} for s in ("s0", "s1", "s2")],
+                arrays={"mask": np.stack([mask0, mask1, mask2])})
+    fits = [fit0, {**fit0, "sample_id": "s1", "status": "too_few_points", "reason": "3 points"}]
+    write_shard(tmp_path / "fit", 0, fits)
+    M.evaluate_collection_shard(tmp_path / "pred", 0, tmp_path / "coll", tmp_path / "fit", toy_rig, 1,
+                                tmp_path / "run" / "iter-01" / "evaluate" / M.COLLECTION_ROWS_DIR)
+    # iteration 0: no fits of its own
+    M.evaluate_collection_shard(tmp_path / "pred", 0, tmp_path / "coll", None, None, 0,
+                                tmp_path / "run" / "iter-00" / "evaluate" / M.COLLECTION_ROWS_DIR)
+    rows = {(r["iteration"], r["sample_id"]): r for r in M.read_collection_rows(tmp_path / "run").to_pylist()}
+    assert len(rows) == 6
+    assert rows[1, "s0"]["pred_mask_iou"] == pytest.approx(1.0)
+    assert rows[1, "s1"]["pred_mask_iou"] == pytest.approx(0.5) and rows[1, "s1"]["pred_pixels"] == 300
+    assert math.isnan(rows[1, "s2"]["pred_mask_iou"]) and rows[1, "s2"]["status"] == "empty"
+    fit_iou = mask_iou(M.fit_silhouette(toy_rig, fit0), mask0)
+    assert rows[1, "s0"]["fit_status"] == "ok" and rows[1, "s0"]["fit_mask_iou"] == pytest.approx(fit_iou)
+    assert rows[1, "s1"]["fit_status"] == "too_few_points" and rows[1, "s2"]["fit_status"] == "no_fit"
+    assert rows[0, "s0"]["fit_status"] == "no_fit"
+    _write_iteration(tmp_path / "run", 1, [1.0, 3.0], [2.0, 4.0], [1.0, 2.0])
+    E.evaluate_run(tmp_path / "run")
+    table = pq.read_table(tmp_path / "run" / "metrics.parquet").to_pylist()
+    by_key = {(r["iteration"], r["split"]): r for r in table}
+    assert set(by_key) == {(0, "collection"), (1, "collection"), (1, "test")}
+    c1, c0 = by_key[1, "collection"], by_key[0, "collection"]
+    assert (c1["n"], c1["n_failed"], c1["n_fits"]) == (2, 1, 1)
+    assert c1["pred_mask_iou"] == pytest.approx(0.75) and c1["fit_mask_iou"] == pytest.approx(fit_iou)
+    assert c0["pred_mask_iou"] == pytest.approx(0.75) and c0["n_fits"] == 0 and c0["fit_mask_iou"] is None
+    assert c1["mcd_cm"] is None                                  # no 3D ground truth on the collection
+    assert by_key[1, "test"]["mcd_cm"] == pytest.approx(2.0) and by_key[1, "test"]["pred_mask_iou"] is None

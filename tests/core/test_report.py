@@ -128,8 +128,21 @@ def _make_run(root: Path, iterations: int = 3, n: int = 120) -> Path:
                          "roll_deg": float(4 * rng.standard_t(1.5)), "cluster": int(rng.integers(0, 10))}
                         for i, st in enumerate(status)]
             shards.write_shard(run / f"iter-{it:02d}" / "fit", 0, fit_rows)
+        _collection_rows(run, it, rng)
     E.evaluate_run(run)
     return run
+
+
+def _collection_rows(run: Path, it: int, rng: np.random.Generator, n: int = 20) -> None:
+    """Per-image mask IoU rows of the collection (``bat3r_core.evaluation_masks``), improving with iterations."""
+    from bat3r_core import evaluation_masks as M
+
+    rows = [{"sample_id": f"c{i:04d}", "split": "collection", "iteration": it, "status": "ok", "reason": "",
+             "pred_mask_iou": float(min(1.0, 0.5 + 0.15 * it + rng.uniform(-0.05, 0.05))), "mask_pixels": 500,
+             "pred_pixels": 400, "fit_status": "ok" if it else "no_fit",
+             "fit_mask_iou": float(0.4 + 0.2 * it) if it else math.nan, "fit_pixels": 450 if it else 0}
+            for i in range(n)]
+    shards.write_shard(run / f"iter-{it:02d}" / "evaluate" / M.COLLECTION_ROWS_DIR, 0, rows)
 
 
 @pytest.fixture(scope="module")
@@ -265,3 +278,26 @@ def test_clusters_are_computed_from_pose_features_when_rows_carry_none(tmp_path)
     section = page[page.index('id="per-cluster"'):]
     section = section[:section.index("</section>")]
     assert "Clusters computed here from the samples" in section and "<img" in section
+
+
+def test_report_shows_the_collection_mask_ious_per_iteration(full_run, tmp_path):
+    text = (full_run / "report.html").read_text()
+    section = re.search(r'<section id="collection-masks">(.*?)</section>', text, re.S).group(1)
+    cells = re.findall(r"<tr>(<td>.*?)</tr>", section)
+    assert len(cells) == 3                                   # one table row per iteration
+    assert "0 (canonical)" in cells[0] and "–" in cells[0]   # iteration 0: no fits of its own
+    assert "<td>0.800</td>" in cells[2] and "<td>20</td>" in cells[2]  # iteration 2's mean fit IoU, 20 fits
+    assert "<img" in section and "Latest (collection, iteration 2)" in text
+    metrics = {(r["iteration"], r["split"]): r for r in E.read_metrics(full_run).to_pylist()}
+    pred = [metrics[i, "collection"]["pred_mask_iou"] for i in range(3)]
+    assert pred[0] < pred[1] < pred[2]
+    for it in range(3):
+        assert f"<td>{pred[it]:.3f}</td>" in cells[it]
+    # a run with collection rows only (real photos, no test ground truth), metrics.parquet not written yet
+    run = tmp_path / "photos"
+    _collection_rows(run, 0, np.random.default_rng(1))
+    _collection_rows(run, 1, np.random.default_rng(2))
+    text = R.build_report(run).read_text()
+    page = _parse(text)
+    assert page.sections == list(R.SECTION_IDS) and "error" not in page.classes
+    assert "Latest (collection, iteration 1)" in text and "<td>0.600</td>" in text  # iteration 1's fit IoU
