@@ -26,9 +26,11 @@ class FittingConfig:
         lr_rotations: learning rate of the excess rotations θ (2e-2).
         lr_bone_scales: learning rate of the log bone scales (2e-2).
         lr_global: learning rate of the global similarity (axis-angle delta, translation, log scale) (1e-3).
-        rotation_lr_halving_steps: θ's learning rate is halved every this many steps (100).
+        rotation_lr_halving_steps: θ's and the bone scales' learning rates are halved every this many steps (100;
+            the reference halves both). θ is wrapped to |θ_j| <= π after every step (the same rotations).
         huber_delta: δ of the Huber data term, metres (0.1).
-        weight_angle, weight_edge, weight_volume, weight_repulsion, weight_scale: λ of Eq. 3.
+        weight_angle, weight_edge, weight_volume, weight_repulsion, weight_scale: λ of Eq. 3, acting on the terms
+            normalised as the reference normalises them (mean data term, absolute volume change; ``losses``).
         warmup: start the angle, edge and volume weights at ``warmup_factor`` times and decay them linearly to
             1x over ``warmup_steps`` steps (the reference warm-up).
         warmup_factor: initial multiplier of the warm-up (10).
@@ -52,7 +54,9 @@ class FittingConfig:
             angle penalty keeps it small).
         regulariser_max_vertices: the edge, volume and repulsion terms run on a quadric-decimated proxy of the
             mesh with about this many vertices when the rig has more (0: always the full mesh). Exact full-mesh
-            terms cost about 3x more per step for the 4.8K-vertex toy (docs/fitting.md).
+            terms cost about 3x more per step for the 4.8K-vertex toy (docs/fitting.md). Only the full mesh
+            reproduces the reference's weighting exactly; the proxy's edge and volume gradients are within a factor
+            ~1.5-2 of it (docs/fitting.md, "Weighting as the reference weights it").
         min_valid_points: instances with fewer inlier points are recorded with status ``too_few_points``.
         seed: seed of the random FPS start points.
         weld_relative_tolerance: fitting runs on the rig's welded mesh: file vertices closer than this fraction

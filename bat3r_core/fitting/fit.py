@@ -4,9 +4,12 @@ Per instance (one image): nearest-vertex correspondences and inliers (:mod:`.cor
 points under the surface metric (:mod:`.sampling`), a robust Kabsch–Umeyama similarity from the assigned rest
 vertices to the predicted posed points, then Adam over the excess rotations θ, log bone scales and the global
 similarity (axis-angle delta ω on the initial rotation, ``R = R(ω) @ R0``; translation; log scale), with the
-paper's learning rates and schedule. Instances are independent: every loss is per instance and summed over the
-batch, and Adam is elementwise, so a batch gives the same numbers as fitting its instances one at a time
-(random choices are seeded by ``config.seed`` and the sample id, not the batch position).
+paper's learning rates and schedule (θ's and the bone scales' learning rates halved every 100 steps, θ wrapped to
+|θ_j| ≤ π after every step, as in the reference). The objective is weighted as the reference weights it
+(:mod:`.losses`: mean data term, absolute volume change, proxy terms normalised to the full mesh). Instances are
+independent: every loss is per instance and summed over the batch, and Adam is elementwise, so a batch gives the
+same numbers as fitting its instances one at a time (random choices are seeded by ``config.seed`` and the sample
+id, not the batch position).
 
 Vertices: the file rig may split vertices at UV seams or not share them at all (unindexed exports). Everything
 that needs the surface runs on the **fitting mesh** (``FittingAsset.fitting_rig``): the welded rig
@@ -42,7 +45,7 @@ from .correspondences import VertexIndex
 from .geodesics import (DenseGeodesics, LandmarkGeodesics, SubsetGeodesics, load_or_compute_geodesic_block,
                         load_or_compute_landmark_geodesics)
 from .losses import (MeshRegularisers, RegulariserMesh, angle_term, data_term, find_repulsion_pairs,
-                     regulariser_mesh, repulsion_term, scale_term)
+                     regulariser_mesh, scale_term, wrap_axis_angle)
 from .sampling import farthest_point_sampling
 
 __all__ = ["FittingAsset", "PointCloudInstance", "FitResult", "fit_batch", "densify", "median_edge_length",
@@ -155,8 +158,10 @@ class FittingAsset:
                             reg_tensors=RigTensors.from_arrays(reg_mesh.rest_vertices, rig.parents,
                                                                rig.rest_transforms, reg_mesh.skin_weights,
                                                                dtype=dtype, device=device),
-                            regularisers=MeshRegularisers.from_mesh(reg_mesh.rest_vertices, reg_mesh.faces,
-                                                                    reg_mesh.skin_weights, dtype=dtype, device=device),
+                            regularisers=MeshRegularisers.from_mesh(
+                                reg_mesh.rest_vertices, reg_mesh.faces, reg_mesh.skin_weights, dtype=dtype,
+                                device=device, full_mesh=((welded.rest_vertices, welded.faces, welded.skin_weights)
+                                                          if reg_mesh.is_proxy else None)),
                             geodesics=geo, reg_geodesics=reg_geo, vertex_index=VertexIndex(fv),
                             geodesic_threshold=config.geodesic_threshold_for(length),
                             left_right=torch.as_tensor(pairs, device=device), device=device, dtype=dtype)
@@ -471,7 +476,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             "angle": angle_term(th, joint_mask),
             "edge": reg.edge(verts_u),
             "volume": reg.volume(verts_u),
-            "repulsion": repulsion_term(verts_u, pair_batch, pairs, radius, b),
+            "repulsion": reg.repulsion(verts_u, pair_batch, pairs, radius, b),
             "scale": scale_term(scales, asset.left_right),
         }
         warm = 1.0
@@ -484,13 +489,17 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
         return terms, m_unscaled, rot, scale, trans, scales
 
     for step in range(config.steps):
-        opt.param_groups[0]["lr"] = config.lr_rotations * 0.5 ** (step // config.rotation_lr_halving_steps)
+        halving = 0.5 ** (step // config.rotation_lr_halving_steps)
+        opt.param_groups[0]["lr"] = config.lr_rotations * halving
+        if config.enable_bone_scales:  # the reference halves the bone scales' learning rate with θ's
+            opt.param_groups[2]["lr"] = config.lr_bone_scales * halving
         opt.zero_grad(set_to_none=True)
         terms, *_ = evaluate(step)
         terms["total"].sum().backward()
         opt.step()
-        if config.enable_bone_scales:
-            with torch.no_grad():
+        with torch.no_grad():
+            theta.copy_(wrap_axis_angle(theta))  # the same rotations with |θ_j| <= π, as the reference keeps them
+            if config.enable_bone_scales:
                 log_bone.clamp_(lo, hi)
     with torch.no_grad():
         terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps)

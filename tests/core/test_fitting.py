@@ -532,9 +532,11 @@ def test_a_low_poly_unindexed_asset_is_densified_and_fits(geo_cache, one_thread)
             assert asset.fitting_rig.num_vertices == 4834 and not asset.reg_mesh.is_proxy
             np.testing.assert_array_equal(asset.fitting_rig.rest_vertices[:304], asset.welded_rig.rest_vertices)
             assert len(asset.reg_mesh.rest_vertices) == 304  # edge and volume terms on the welded mesh itself
-    # measured: 0.78 cm (all better than the rest pose, 4.2 cm mean) refined; 2.6 cm (5 of 8 better) without
-    assert errors[0.02].mean() < 0.012 and np.mean(errors[0.02] < rest_err) >= 0.95, errors[0.02]
-    assert errors[0.0].mean() > 2 * errors[0.02].mean()
+    # measured: 1.21 cm (0.42-1.91; all better than the rest pose, 4.2 cm mean) refined, 2.43 cm without (2.0x).
+    # With the summed data term (regularisers ~200x weaker than the paper's λ were tuned for) 0.78 / 2.6 cm: the
+    # reference's edge term on this 13 cm-edge welded mesh is stiff
+    assert errors[0.02].mean() < 0.02 and np.mean(errors[0.02] < rest_err) >= 0.95, errors[0.02]
+    assert errors[0.0].mean() > 1.5 * errors[0.02].mean()
 
 
 def test_prepare_reads_repulsion_geodesics_from_the_exact_block_or_the_landmarks(toy, toy_fit, geo_cache):
@@ -606,6 +608,10 @@ def test_config_validation_and_presets():
     s, r = preset("synthetic"), preset("real")
     assert (s.steps, s.weight_edge, s.weight_repulsion, s.weight_scale, s.enable_bone_scales) == (200, 100, 1, 0, False)
     assert (r.steps, r.weight_angle, r.weight_edge, r.weight_repulsion, r.weight_scale) == (300, 3e-5, 3000, 5, 0.01)
+    # the paper's λ (REFERENCE.md), acting on the reference's normalisations
+    assert (s.weight_angle, s.weight_edge, s.weight_volume, s.weight_repulsion, s.weight_scale) == (1e-5, 100, 20, 1, 0)
+    assert (r.weight_angle, r.weight_edge, r.weight_volume, r.weight_repulsion, r.weight_scale) == (3e-5, 3000, 20, 5,
+                                                                                                     0.01)
     assert r.enable_bone_scales and s.lr_global == 1e-3 and s.lr_rotations == 2e-2 and s.huber_delta == 0.1
     assert s.geodesic_threshold_for(2.7) == pytest.approx(0.5)
     assert s.geodesic_threshold_for(2.361) == pytest.approx(0.5 * 2.361 / 2.7)
