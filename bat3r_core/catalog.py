@@ -174,6 +174,8 @@ class RunPreset:
         train: training settings (checked against the predictor's TrainConfig).
         fitting: overrides of the fitting preset (dotted keys; e.g. ``steps``).
         features: feature extractor name (``rgb`` on CPU, ``dinov2`` with weights).
+        pseudo_label_filter: which fits become pseudo-labels (checked against
+            ``bat3r_core.pseudo_labels.PseudoLabelFilterConfig``; empty: keep every ok fit).
         name: the preset's key under ``runs`` (set by the loader; kept by overrides, so that the stage configs
             built from an overridden preset name it in their errors).
     """
@@ -189,6 +191,7 @@ class RunPreset:
     fitting: dict[str, Any] = field(default_factory=dict)
     features: str = "rgb"
     views_per_fit_max: int = 2
+    pseudo_label_filter: dict[str, Any] = field(default_factory=dict)
     name: str = ""
 
 
@@ -331,6 +334,13 @@ class Catalog:
         data = {"resolution": preset.image_size, **preset.render}
         return _stage(RenderConfig, data, f"runs.{preset.name}.render")
 
+    def pseudo_label_filter_config(self, run: "str | RunPreset"):
+        """``PseudoLabelFilterConfig`` from the run preset's ``pseudo_label_filter`` section."""
+        from .pseudo_labels import PseudoLabelFilterConfig
+
+        preset = self.run_preset(run)
+        return _stage(PseudoLabelFilterConfig, preset.pseudo_label_filter, f"runs.{preset.name}.pseudo_label_filter")
+
     def validate_stage_sections(self) -> None:
         """Check every stage section against its config class (raises ConfigError naming the key path)."""
         self.camera_prior_config()
@@ -343,6 +353,7 @@ class Catalog:
             self.train_config(run)
             self.render_config(run)
             self.feature_config(run)
+            self.pseudo_label_filter_config(run)
 
 
 def _stage(cls, data: dict[str, Any], path: str):

@@ -22,6 +22,7 @@ ABLATION_SWITCHES = {
     "gaussian_cameras": "Normal viewpoint priors (the Student's t loc/scale per view type, no df)",
     "no_fitting_regularisation": "mesh fitting without the angle, edge, volume, repulsion and scale terms",
     "no_view_augmentation": "render only the estimated view of each fit",
+    "no_pseudo_label_filter": "render every ok fit (skip the pseudo-label filter between fit and plan views)",
     "random_poses": "the random-poses baseline (iteration-0 jobs from random poses; use --iterations 0)",
     "raw_images": "the raw-image baseline (train on the photos with their fitted pseudo-labels)",
 }

@@ -38,10 +38,11 @@ from bat3r_core import shards
 __all__ = ["ITERATION_STAGES", "RUN_STAGES", "RunLayout", "code_version", "stage_code_version", "write_manifest",
            "read_manifest", "shard_record", "ShardFailure", "FailureSummary", "TooManyFailedShards",
            "apply_failure_policy", "prune_shards", "folder_record", "DROP_WARN_FRACTION", "DROP_HINTS",
-           "STAGE_NOUNS", "DropReason", "SampleDrops", "summarize_drops", "SampleNeed", "training_need",
+           "STAGE_NOUNS", "pseudo_label_filter_notes", "DropReason", "SampleDrops", "summarize_drops", "SampleNeed",
+           "training_need",
            "TooFewSamples", "require_samples"]
 
-ITERATION_STAGES = ("infer", "fit", "plan", "render", "features", "train", "test_infer", "evaluate")
+ITERATION_STAGES = ("infer", "fit", "filter", "plan", "render", "features", "train", "test_infer", "evaluate")
 """Stage folders inside ``iter-NN/``, in data-flow order."""
 RUN_STAGES = ("collection", "test")
 """Run-level stage folders (not tied to an iteration)."""
@@ -427,7 +428,8 @@ DROP_HINTS = {
 STAGE_NOUNS = {"collection": "images", "test": "images", "collection-images": "renders", "test-images": "renders",
                "generated_collection": "renders",
                "render": "renders", "features": "feature rows", "infer": "predictions",
-               "test_infer": "predictions", "fit": "fits", "plan": "render jobs", "evaluate": "evaluation rows"}
+               "test_infer": "predictions", "fit": "fits", "filter": "fits", "plan": "render jobs",
+               "evaluate": "evaluation rows"}
 """What a stage's samples are called in reports (default ``samples``)."""
 
 
@@ -616,3 +618,25 @@ def require_samples(drops: SampleDrops, need: SampleNeed, upstream: Iterable[Sam
     if lost:
         msg += ". Dropped before: " + "; ".join(u.describe() for u in lost)
     raise TooFewSamples(msg, drops, need)
+
+
+def _percent(v: float | None) -> str:
+    return "n/a" if v is None else f"{100 * v:.0f} %"
+
+
+def pseudo_label_filter_notes(filter_record: Mapping[str, Any], check_record: Mapping[str, Any] | None = None
+                              ) -> list[str]:
+    """The iteration summary's lines on the pseudo-label filter: the kept fraction and the drop reasons of its
+    record (``tasks.filter.filter_pseudo_labels``) and, with ground truth, its precision and recall against it
+    (``tasks.filter.filter_precision_check``)."""
+    drops = ", ".join(f"{s} ×{n}" for s, n in (filter_record.get("status_counts") or {}).items()) or "none"
+    lines = [f"Pseudo-label filter: {filter_record['n_ok']} of {filter_record['n_rows']} ok fits kept "
+             f"({_percent(filter_record.get('kept_fraction'))}; {filter_record.get('n_rescued', 0)} kept back by "
+             f"min_kept); dropped: {drops}."]
+    if check_record is not None:
+        c = check_record
+        lines.append(f"Pseudo-label filter against the hidden truth: precision {_percent(c['precision'])} "
+                     f"({c['n_kept_good']} of {c['n_kept']} kept fits beat the rest pose), recall "
+                     f"{_percent(c['recall'])} (of {c['n_good']} that do); keeping every fit: "
+                     f"{_percent(c['base_rate'])}.")
+    return lines

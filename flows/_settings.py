@@ -5,7 +5,7 @@ JSON written to ``manifest.json`` and the per-stage mappings are what the tasks 
 keys), so a changed setting recomputes exactly the stages it reaches.
 
 Overrides are ``{"<section>.<key>[.<key>...]": value}`` with sections ``render``, ``model``, ``train``,
-``features``, ``fitting``, ``camera_prior`` (stage configs) and ``run`` (fields of the run preset, e.g.
+``features``, ``fitting``, ``camera_prior``, ``pseudo_label_filter`` (stage configs) and ``run`` (fields of the run preset, e.g.
 ``run.canonical_samples``), plus the top-level ``shard_size`` and ``max_failed_fraction``.
 """
 from __future__ import annotations
@@ -21,13 +21,14 @@ from bat3r_core.config_utils import ConfigError, replace_path, to_mapping
 from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.features import FeatureConfig
+from bat3r_core.pseudo_labels import PseudoLabelFilterConfig
 from bat3r_core.render.config import RenderConfig, SceneAssets
 from bat3r_core.runs import RunLayout, read_manifest
 from bat3r_core.viewpoints import AnglePrior, CameraPriorConfig, ViewTypePrior
 
 __all__ = ["Ablations", "RunSettings", "resolve_run", "recorded_run"]
 
-_SECTIONS = ("render", "model", "train", "features", "fitting", "camera_prior", "run")
+_SECTIONS = ("render", "model", "train", "features", "fitting", "camera_prior", "pseudo_label_filter", "run")
 
 
 @dataclass(frozen=True)
@@ -39,6 +40,7 @@ class Ablations:
             view type, no df).
         no_fitting_regularisation: zero the angle, edge, volume, repulsion and scale weights of the mesh fit.
         no_view_augmentation: render only the estimated view of each fit (no augmented views).
+        no_pseudo_label_filter: plan views for every ok fit (no filter stage between fit and plan views).
         random_poses: the random-poses baseline (training images of random poses instead of fitted ones).
         raw_images: the raw-image baseline (train on the collection images with the fitted pseudo-labels,
             without re-rendering).
@@ -47,6 +49,7 @@ class Ablations:
     gaussian_cameras: bool = False
     no_fitting_regularisation: bool = False
     no_view_augmentation: bool = False
+    no_pseudo_label_filter: bool = False
     random_poses: bool = False
     raw_images: bool = False
 
@@ -75,6 +78,7 @@ class RunSettings:
     features: FeatureConfig
     fitting: FittingConfig
     camera_prior: CameraPriorConfig
+    pseudo_label_filter: PseudoLabelFilterConfig
     assets: SceneAssets
     body_frame: dict[str, Any]
     collection: dict[str, Any]
@@ -184,7 +188,7 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
     features = FeatureConfig(extractor=run.features,
                              cache_dir=str(catalog.storage() / "_cache" / "features" / category))
     configs = {"render": render, "model": model, "train": train, "features": features, "fitting": fitting,
-               "camera_prior": prior}
+               "camera_prior": prior, "pseudo_label_filter": catalog.pseudo_label_filter_config(run)}
     for section in configs:
         for key, value in ov[section].items():
             configs[section] = replace_path(configs[section], key, value)

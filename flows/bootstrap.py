@@ -9,7 +9,8 @@ Reads like the data flow of ``DESIGN.md``::
     iteration i >= 1 (predictor Φ_{i-1}):
     collection              ── infer(Φ_{i-1}) ─▶ iter-ii/infer     predicted dual point maps and clouds
     predictions + rig       ── fit ────────────▶ iter-ii/fit       θ, global similarity, camera, losses, status
-    fits                    ── plan views ─────▶ iter-ii/plan      render jobs (estimated + augmented views)
+    fits + predictions      ── filter ─────────▶ iter-ii/filter    kept flag, status, reason, quality per fit
+    kept fits               ── plan views ─────▶ iter-ii/plan      render jobs (estimated + augmented views)
     every iteration:
     render jobs + rig       ── render ─────────▶ iter-ii/render    training shards (RGB, mask, P/Q/occupancy)
     training shards         ── features ───────▶ iter-ii/features  feature shards
@@ -35,6 +36,7 @@ import dataclasses
 from typing import Any, Mapping, Sequence
 
 from prefect import flow
+from prefect.artifacts import create_markdown_artifact
 from prefect.logging import get_run_logger
 
 from bat3r_core import shards
@@ -42,7 +44,7 @@ from bat3r_core.catalog import default_catalog_path
 from bat3r_core.cli import add_bootstrap_arguments, bootstrap_parameters
 from bat3r_core.config_utils import to_mapping
 from bat3r_core.runs import (SampleDrops, SampleNeed, TooFewSamples, TooManyFailedShards, prune_shards,
-                             require_samples, training_need, write_manifest)
+                             pseudo_label_filter_notes, require_samples, training_need, write_manifest)
 from flows._artifacts import publish_iteration_artifacts
 from flows._fanout import StageResult, artifact_key, run_stage
 from flows._runners import make_task_runner
@@ -52,6 +54,7 @@ from flows.toy_collection import prepare_split
 from tasks._cache import for_run
 from tasks.evaluate import evaluate_shard, pseudo_label_quality
 from tasks.features import extract_features_shard
+from tasks.filter import filter_precision_check, filter_pseudo_labels
 from tasks.fit import fit_shard
 from tasks.plan import plan_sampled_jobs, plan_views_shard
 from tasks.predict import infer_shard
@@ -66,7 +69,8 @@ STAGE_MODULES = {
     "collection": "bat3r_core.predictor.collection", "generated_collection": "bat3r_core.datasets",
     "plan": "bat3r_core.datasets", "render": "bat3r_core.render.runner",
     "features": "bat3r_core.predictor.features", "train": "bat3r_core.predictor.train",
-    "infer": "bat3r_core.predictor.infer", "fit": "bat3r_core.fitting.fit", "plan_views": "bat3r_core.fitting.augment",
+    "infer": "bat3r_core.predictor.infer", "fit": "bat3r_core.fitting.fit", "filter": "bat3r_core.pseudo_labels",
+    "plan_views": "bat3r_core.fitting.augment",
     "raw_images": "bat3r_core.datasets",
     "evaluate": "bat3r_core.evaluation", "report": "bat3r_core.report",
 }
@@ -92,6 +96,7 @@ def _stage_configs(settings: RunSettings, seed: int) -> dict[str, Any]:
         "fit": {"fitting": to_mapping(settings.fitting), "fov_deg": settings.camera_prior.fov_deg,
                 "resolution": settings.image_size,
                 "geodesic_cache": str(settings.layout.storage_root / "_cache" / "geodesics")},
+        "filter": {"filter": to_mapping(settings.pseudo_label_filter)},
         "plan_views": {"augment": {"camera_prior": to_mapping(settings.camera_prior),
                                    "width": settings.image_size, "height": settings.image_size,
                                    "num_textures": settings.assets.num_textures,
@@ -117,6 +122,7 @@ class _Iteration:
     def __init__(self, settings: RunSettings, iteration: int, data_drops: Sequence[SampleDrops] = ()) -> None:
         self.settings, self.iteration, self.data_drops = settings, iteration, tuple(data_drops)
         self.stages: list[StageResult] = []
+        self.notes: list[str] = []
 
     def run(self, stage: str, stage_task, calls: list[dict[str, Any]], *, max_failed_fraction: float,
             needs: SampleNeed | None = None) -> StageResult:
@@ -199,8 +205,8 @@ def _finish_iteration(it: _Iteration, predictor: str) -> dict[str, Any]:
     """metrics.parquet, report.html and the iteration's dashboard artifacts; the subflow's result."""
     layout, stages = it.settings.layout, it.stages
     metrics = evaluate(layout.category, layout.run_name, storage_root=str(layout.storage_root))
-    notes = [] if any(r.stage == "evaluate" for r in stages) else \
-        ["The test split has no ground truth: no per-sample evaluation."]
+    notes = list(it.notes) + ([] if any(r.stage == "evaluate" for r in stages) else
+                              ["The test split has no ground truth: no per-sample evaluation."])
     publish_iteration_artifacts(layout, it.iteration, stages, metrics["rows"], notes=notes, data_drops=it.data_drops)
     return {"stages": {r.stage: list(r.records) for r in stages},
             "states": {r.stage: list(r.states) for r in stages},
@@ -239,6 +245,8 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
                  "config": {"asset": settings.assets.asset,
                             "ground_truth": str(Path(collection_gt) / "ground_truth.npz")}}],
                max_failed_fraction=1.0)
+    filter_dir = None if settings.ablations.no_pseudo_label_filter or settings.ablations.raw_images else \
+        _filter_fits(it, cfg, collection_gt)
     if settings.ablations.raw_images:  # the raw-image baseline: train on the photos with fitted pseudo-labels
         it.run("render", raw_image_shard,
                [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
@@ -250,7 +258,7 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
     plan = it.run("plan", plan_views_shard,
                   [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
                     "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "plan")),
-                    "config": cfg["plan_views"]} for r in fit.records],
+                    "config": cfg["plan_views"], "filter_dir": filter_dir} for r in fit.records],
                   max_failed_fraction=mff, needs=need)
     job_files = [(r["index"], r["files"][0]) for r in plan.records if r["n_jobs"] > 0]
     for stage in ("render", "features"):  # shards of an earlier plan of this run that this plan does not have
@@ -260,6 +268,35 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
              "config": cfg["render"]} for i, f in job_files],
            max_failed_fraction=mff, needs=need)
     return _train_and_evaluate(it, cfg, predictor)
+
+
+def _filter_fits(it: _Iteration, cfg: dict[str, Any], collection_gt: str | None) -> str:
+    """The pseudo-label filter over the iteration's fits (``tasks.filter``); with the collection's hidden truth,
+    its precision against it. Adds the kept fraction (and the precision) to the iteration's notes; returns the
+    filter folder plan views reads."""
+    layout, iteration = it.settings.layout, it.iteration
+    filter_dir = str(layout.stage_dir(iteration, "filter"))
+    result = it.run("filter", filter_pseudo_labels,
+                    [{"asset": it.settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
+                      "predictions_dir": str(layout.stage_dir(iteration, "infer")), "out_dir": filter_dir,
+                      "config": cfg["filter"]}],
+                    max_failed_fraction=0.0, needs=SampleNeed(1, "view planning", "one kept fit to render"))
+    errors = layout.stage_dir(iteration, "evaluate") / "pseudo_labels.parquet"
+    check_record = None
+    if collection_gt and any(r.stage == "pseudo_labels" for r in it.stages) and errors.is_file():
+        check = it.run("filter_check", filter_precision_check,
+                       [{"fit_dir": str(layout.stage_dir(iteration, "fit")), "filter_dir": filter_dir,
+                         "errors_file": str(errors), "out_dir": str(layout.stage_dir(iteration, "evaluate")),
+                         "config": {"asset": it.settings.assets.asset,
+                                    "ground_truth": str(Path(collection_gt) / "ground_truth.npz")}}],
+                       max_failed_fraction=1.0)
+        check_record = check.records[0] if check.records else None
+    lines = pseudo_label_filter_notes(result.records[0], check_record)
+    it.notes += lines
+    create_markdown_artifact(markdown="\n".join(f"- {line}" for line in lines),
+                             key=_progress(it.settings, iteration, "pseudo-label-filter"),
+                             description=f"iteration {iteration}: pseudo-label filter")
+    return filter_dir
 
 
 def _train_and_evaluate(it: _Iteration, cfg: dict[str, Any], previous: str) -> dict[str, Any]:
@@ -294,6 +331,7 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
               run_name: str | None = None, overrides: dict[str, Any] | None = None,
               gaussian_cameras: bool = False, no_fitting_regularisation: bool = False,
               no_view_augmentation: bool = False, random_poses: bool = False, raw_images: bool = False,
+              no_pseudo_label_filter: bool = False,
               task_runner: str = "local", max_failed_fraction: float = 0.1, seed: int = 0,
               catalog: str | None = None) -> dict[str, Any]:
     """The bootstrap loop of ``category`` at run preset ``preset`` (``tiny``, ``demo``, ``paper``).
@@ -304,7 +342,8 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
             with the same name reuses every completed task.
         overrides: dotted settings, e.g. ``{"train.steps": 100, "run.canonical_samples": 64}``
             (``flows._settings``).
-        gaussian_cameras ... raw_images: the paper's ablation switches (``flows._settings.Ablations``).
+        gaussian_cameras ... no_pseudo_label_filter: the ablation switches (``flows._settings.Ablations``);
+            ``no_pseudo_label_filter`` plans views for every ok fit instead of the filter's kept fits.
         task_runner: a preset of ``deploy/task_runners.yaml`` (``local``, ``dask``, ``dask-cuda``, ``slurm``) or
             the path of a YAML file with one runner config.
         max_failed_fraction: a stage continues while at most this fraction of its shards failed after retries.
@@ -323,7 +362,8 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
     run_name = run_name or preset
     catalog_file = str(Path(catalog).expanduser().resolve() if catalog else default_catalog_path().resolve())
     switches = dict(gaussian_cameras=gaussian_cameras, no_fitting_regularisation=no_fitting_regularisation,
-                    no_view_augmentation=no_view_augmentation, random_poses=random_poses, raw_images=raw_images)
+                    no_view_augmentation=no_view_augmentation, random_poses=random_poses, raw_images=raw_images,
+                    no_pseudo_label_filter=no_pseudo_label_filter)
     overrides = dict(overrides or {})
     settings = resolve_run(category, preset, run_name, overrides, _ablations(**switches), catalog=catalog_file,
                            max_failed_fraction=max_failed_fraction)

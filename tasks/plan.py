@@ -47,24 +47,38 @@ def plan_sampled_jobs(asset: str, out_dir: str, config: Mapping[str, Any]) -> di
             "n_jobs": len(jobs), "n_shards": len(files)}
 
 
-@stage_task("plan", "bat3r_core.fitting.augment",
-            inputs=lambda p: [Path(p["asset"])] + shard_input_files(p["fit_dir"], p["index"]),
+def _views_inputs(p: Mapping[str, Any]) -> list[Path]:
+    files = [Path(p["asset"])] + shard_input_files(p["fit_dir"], p["index"])
+    if p.get("filter_dir"):
+        files.append(shards.shard_paths(p["filter_dir"], p["index"]).parquet)
+    return files
+
+
+@stage_task("plan", "bat3r_core.fitting.augment", inputs=_views_inputs,
             output=lambda p: Path(p["out_dir"]) / f"{shards.shard_name(p['index'])}.parquet",
             task_run_name="plan-{index}")
-def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
+def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config: Mapping[str, Any],
+                     filter_dir: str | None = None) -> dict:
     """Render jobs for the fitted rows of fit shard ``index`` of ``fit_dir``: the estimated view and 1–2 augmented
     views per fit (``bat3r_core.fitting.augment.plan_views_for_fits``; rows that are not ok or have no camera are
     skipped), written to ``out_dir/part-<index>.parquet``. config: ``{"augment": AugmentConfig mapping,
     "body_frame": {origin, forward, horizontal}, "seed": int}``; shard ``index`` draws with seed
-    ``seed * 1_000_003 + index``.
-    Returns ``stage, index, files, content_hash, n_jobs, n_fits``."""
+    ``seed * 1_000_003 + index``. filter_dir: the pseudo-label filter's shards (``tasks.filter``); when given,
+    only the fits it kept are planned (``bat3r_core.pseudo_labels.read_kept``), otherwise every ok fit.
+    Returns ``stage, index, files, content_hash, n_jobs, n_fits, n_kept``."""
     augment = from_mapping(AugmentConfig, config["augment"], "augment")
     rows = pq.read_table(shards.shard_paths(fit_dir, index).parquet).to_pylist()
+    if filter_dir:
+        from bat3r_core.pseudo_labels import read_kept
+
+        decided = read_kept(filter_dir, index, [r["sample_id"] for r in rows])
+        rows = [r if d["kept"] else {**r, "status": d["status"], "reason": d["reason"]}
+                for r, d in zip(rows, decided)]
     jobs = plan_views_for_fits(load_rig(asset), rows, dict(config["body_frame"]), augment,
                                seed=_shard_seed(int(config["seed"]), index))
     path = write_jobs(jobs, Path(out_dir) / f"{shards.shard_name(index)}.parquet")
     return {"stage": "plan", "index": index, "files": [str(path)], "content_hash": shards.content_hash([path]),
-            "n_jobs": len(jobs), "n_fits": len(rows)}
+            "n_jobs": len(jobs), "n_fits": len(rows), "n_kept": sum(r["status"] == shards.STATUS_OK for r in rows)}
 
 
 def _shard_seed(seed: int, index: int) -> int:

@@ -34,7 +34,7 @@ def test_bat3r_bootstrap_has_exactly_the_options_of_the_flow_script():
     assert _options(_subparser("bootstrap")) == _options(flow_parser())
     assert {"--category", "--preset", "--catalog", "--iterations", "--run-name", "--set", "--task-runner",
             "--max-failed-fraction", "--seed", "--gaussian-cameras", "--no-fitting-regularisation",
-            "--no-view-augmentation", "--random-poses", "--raw-images"} == _options(flow_parser())
+            "--no-view-augmentation", "--no-pseudo-label-filter", "--random-poses", "--raw-images"} == _options(flow_parser())
     assert set(ABLATION_SWITCHES) == {f.name for f in dataclasses.fields(Ablations)}
     # the parsed options are exactly the flow's keyword arguments
     args = build_parser().parse_args(["bootstrap", "--category", "horse", "--preset", "paper", "--catalog",
@@ -47,7 +47,8 @@ def test_bat3r_bootstrap_has_exactly_the_options_of_the_flow_script():
     assert set(params) == set(inspect.signature(bootstrap.fn).parameters)
     assert params["overrides"] == {"train.steps": 7, "run.fitting": {"steps": 9}, "render.device": "CPU"}
     assert params["catalog"] == str(Path("cat.yaml").resolve()) and params["iterations"] == 1
-    assert params["no_view_augmentation"] and not params["raw_images"]
+    assert params["no_view_augmentation"] and not params["raw_images"] and not params["no_pseudo_label_filter"]
+    assert bootstrap_parameters(flow_parser().parse_args(["--no-pseudo-label-filter"]))["no_pseudo_label_filter"]
     assert (params["category"], params["preset"]) == ("horse", "paper")
     assert bootstrap_parameters(flow_parser().parse_args([]))["catalog"] is None
 

@@ -94,16 +94,29 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
     assert len(result["iterations"]) == 3
     for i in (1, 2):
         it = result["iterations"][i]
-        assert set(it["states"]) == {"infer", "fit", "pseudo_labels", "plan", "render", "features", "train",
-                                     "test_infer", "evaluate"}
+        assert set(it["states"]) == {"infer", "fit", "pseudo_labels", "filter", "filter_check", "plan", "render",
+                                     "features", "train", "test_infer", "evaluate"}
         fits = shards.read_table(layout.stage_dir(i, "fit")).to_pylist()
         assert len(fits) == 4 and sum(r["status"] == "ok" for r in fits) >= 1
         jobs = shards.read_table(layout.stage_dir(i, "render")).to_pylist()
         ok_fits = {r["sample_id"] for r in fits if r["status"] == "ok"}
-        # every fitted image is rendered from its estimated view plus 1-2 augmented views
-        assert {j["source_id"] for j in jobs} <= ok_fits
+        # the tiny preset's filter: the best 75 % of the ok fits by residual Chamfer, never fewer than 4
+        decided = shards.read_table(layout.stage_dir(i, "filter")).to_pylist()
+        assert [r["sample_id"] for r in decided] == [r["sample_id"] for r in fits]
+        kept = {r["sample_id"] for r in decided if r["kept"]}
+        assert kept <= ok_fits and len(kept) == min(len(ok_fits), max(4, -(-3 * len(ok_fits) // 4)))
+        (rec,) = it["stages"]["filter"]
+        assert rec["n_rows"] == len(ok_fits) and rec["n_ok"] == len(kept)
+        assert it["drops"]["filter"]["n_ok"] == len(kept)
+        # every kept fit is rendered from its estimated view plus 1-2 augmented views
+        assert {j["source_id"] for j in jobs} <= kept
         assert {j["view_kind"] for j in jobs} <= {"estimated", "augmented"}
-        assert sum(j["view_kind"] == "estimated" for j in jobs) == len(ok_fits)
+        assert sum(j["view_kind"] == "estimated" for j in jobs) == len(kept)
+        # the filter's precision against the toy's hidden truth
+        (check,) = it["stages"]["filter_check"]
+        stored = json.loads((layout.stage_dir(i, "evaluate") / "pseudo_label_filter.json").read_text())
+        assert stored["n"] == len(ok_fits) and stored["n_kept"] == len(kept) and stored == \
+            {k: check[k] for k in stored}
         assert Path(it["predictor"]).is_file() and it["predictor"] != result["iterations"][i - 1]["predictor"]
         # the tiny preset warm-starts: Φ_i was trained from Φ_{i-1}, whose file is part of the train inputs
         from tasks.train import training_inputs
@@ -242,6 +255,22 @@ def test_raw_image_baseline_trains_on_the_photos_with_fitted_labels(first_run, c
     ok = shards.ok_mask(table)
     assert ok.any() and set(table.column("view_kind").to_pylist()) == {"raw_image"}
     assert arrays["occupancy"][ok].any(axis=(1, 2, 3)).all()
+
+
+def test_no_pseudo_label_filter_renders_every_ok_fit(first_run, catalog):
+    from flows.bootstrap import bootstrap
+
+    result = bootstrap(category="toy", preset="tiny", iterations=1, run_name="nofilter",
+                       no_pseudo_label_filter=True, overrides=TINY)
+    layout = RunLayout(catalog / "runs", "toy", "nofilter")
+    it = result["iterations"][1]
+    assert "filter" not in it["states"] and "filter_check" not in it["states"]
+    assert not layout.stage_dir(1, "filter").exists()
+    fits = shards.read_table(layout.stage_dir(1, "fit")).to_pylist()
+    ok_fits = {r["sample_id"] for r in fits if r["status"] == "ok"}
+    jobs = shards.read_table(layout.stage_dir(1, "render")).to_pylist()
+    assert {j["source_id"] for j in jobs if j["view_kind"] == "estimated"} == ok_fits
+    assert read_manifest(layout)["config"]["ablations"]["no_pseudo_label_filter"] is True
 
 
 def test_baselines_that_do_not_iterate_say_so(prefect_harness, catalog):

@@ -1,0 +1,100 @@
+"""Filter stage: every fit shard of an iteration → one filter shard per fit shard (kept flag, status, reason and
+quality columns per fit; ``bat3r_core.pseudo_labels``), which plan views reads; and, where the collection has a
+hidden ground truth (toy), the filter's precision against it."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Mapping
+
+from bat3r_core import pseudo_labels, shards
+from bat3r_core.config_utils import from_mapping
+from tasks._cache import shard_input_files, stage_task
+
+__all__ = ["filter_pseudo_labels", "filter_precision_check", "PRECISION_FILE"]
+
+PRECISION_FILE = "pseudo_label_filter.json"
+"""``iter-NN/evaluate/pseudo_label_filter.json``: the filter's precision / recall against the hidden truth."""
+
+
+def _fit_files(fit_dir: str) -> list[Path]:
+    return [f for i in shards.list_shards(fit_dir) for f in shard_input_files(fit_dir, i)]
+
+
+def _inputs(p: Mapping[str, Any]) -> list[Path]:
+    from bat3r_core.predictor.infer import clouds_path
+
+    return [Path(p["asset"])] + _fit_files(p["fit_dir"]) + \
+        [clouds_path(p["predictions_dir"], i) for i in shards.list_shards(p["fit_dir"])]
+
+
+@stage_task("filter", "bat3r_core.pseudo_labels", inputs=_inputs, output=lambda p: Path(p["out_dir"]))
+def filter_pseudo_labels(asset: str, fit_dir: str, predictions_dir: str, out_dir: str,
+                         config: Mapping[str, Any]) -> dict:
+    """Quality columns of every fit of ``fit_dir`` (``pseudo_labels.quality_rows``; the canonical points come from
+    the inference clouds of ``predictions_dir``), the filter (``pseudo_labels.filter_fits``; its quantile is over
+    all the iteration's fits) and one filter shard per fit shard in ``out_dir``.
+
+    config: ``{"filter": PseudoLabelFilterConfig mapping}``. Returns ``stage, files, parquet, content_hash``,
+    ``n_rows`` (ok fits: the candidates), ``n_ok`` (kept), ``status_counts`` / ``status_examples`` (the drops, as
+    ``bat3r_core.runs.summarize_drops`` reads them), ``kept_fraction``, ``n_rescued``.
+    """
+    import pyarrow.parquet as pq
+
+    from bat3r_core.predictor.infer import clouds_path, load_clouds
+    from bat3r_core.rig_io import load_rig
+
+    cfg = from_mapping(pseudo_labels.PseudoLabelFilterConfig, config["filter"], "pseudo_label_filter")
+    indices = shards.list_shards(fit_dir)
+    if not indices:
+        raise FileNotFoundError(f"{fit_dir}: no complete fit shard")
+    rows, points, sizes = [], [], []
+    for i in indices:
+        fit_rows = pq.read_table(shards.shard_paths(fit_dir, i).parquet).to_pylist()
+        clouds = load_clouds(clouds_path(predictions_dir, i))
+        if len(clouds) != len(fit_rows):
+            raise ValueError(f"{predictions_dir}: clouds of shard {i} hold {len(clouds)} instances, the fit shard "
+                             f"{len(fit_rows)} rows")
+        rows += fit_rows
+        points += [clouds.instance(k)["canonical_points"] for k in range(len(fit_rows))]
+        sizes.append(len(fit_rows))
+    quality = pseudo_labels.quality_rows(rows, load_rig(asset), points)
+    decided = pseudo_labels.filter_fits(quality, cfg)
+    paths = pseudo_labels.write_filter_shards(out_dir, indices, decided, sizes)
+    files = [p.parquet for p in paths]
+    counts = pseudo_labels.filter_counts(decided)
+    examples: dict[str, list[str]] = {}
+    for r in decided:
+        if not r["kept"] and r["status"] != pseudo_labels.STATUS_NOT_FITTED:
+            examples.setdefault(r["status"], [r["sample_id"], r["reason"]])
+    return {"stage": "filter", "files": [str(f) for f in files], "parquet": str(files[0]),
+            "content_hash": shards.content_hash(files), "n_rows": counts["n_fits"], "n_ok": counts["n_kept"],
+            "status_counts": counts["drop_counts"], "status_examples": examples,
+            "kept_fraction": counts["kept_fraction"], "n_rescued": counts["n_rescued"]}
+
+
+def _check_inputs(p: Mapping[str, Any]) -> list[Path]:
+    return [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"]), Path(p["errors_file"])] + \
+        _fit_files(p["fit_dir"]) + _fit_files(p["filter_dir"])
+
+
+@stage_task("filter_check", "bat3r_core.pseudo_labels", inputs=_check_inputs,
+            output=lambda p: Path(p["out_dir"]) / PRECISION_FILE)
+def filter_precision_check(fit_dir: str, filter_dir: str, errors_file: str, out_dir: str,
+                           config: Mapping[str, Any]) -> dict:
+    """Precision / recall of the kept fits against the hidden truth (``pseudo_labels.filter_precision``): the
+    pseudo-label errors ``errors_file`` (``bat3r_core.evaluation.write_pseudo_label_errors``), the rest pose's
+    errors (``pseudo_labels.rest_pose_errors``) and the filter shards of ``filter_dir`` →
+    ``out_dir/pseudo_label_filter.json``. config: ``{"asset", "ground_truth" (the collection's
+    ground_truth.npz)}``. Returns ``stage, files, content_hash`` and the figures."""
+    import pyarrow.parquet as pq
+
+    from bat3r_core.evaluation import load_ground_truth
+    from bat3r_core.rig_io import load_rig
+
+    errors = pq.read_table(errors_file).to_pylist()
+    fits = shards.read_table(fit_dir).to_pylist()
+    rest = pseudo_labels.rest_pose_errors(fits, load_ground_truth(config["ground_truth"]), load_rig(config["asset"]))
+    figures = pseudo_labels.filter_precision(errors, rest, shards.read_table(filter_dir).to_pylist())
+    path = shards.atomic_write_text(Path(out_dir) / PRECISION_FILE, json.dumps(figures, indent=1, sort_keys=True))
+    return {"stage": "filter_check", "files": [str(path)], "content_hash": shards.content_hash([path]), **figures}
