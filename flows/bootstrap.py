@@ -43,6 +43,7 @@ from bat3r_core import shards
 from bat3r_core.catalog import default_catalog_path
 from bat3r_core.cli import add_bootstrap_arguments, bootstrap_parameters
 from bat3r_core.config_utils import to_mapping
+from bat3r_core.evaluation_masks import COLLECTION_INFER_DIR, COLLECTION_ROWS_DIR
 from bat3r_core.runs import (SampleDrops, SampleNeed, TooFewSamples, TooManyFailedShards, prune_shards,
                              pseudo_label_filter_notes, require_samples, training_need, write_manifest)
 from flows._artifacts import publish_iteration_artifacts
@@ -52,7 +53,7 @@ from flows._settings import Ablations, RunSettings, resolve_run
 from flows.evaluate import evaluate
 from flows.toy_collection import prepare_split
 from tasks._cache import for_run
-from tasks.evaluate import evaluate_shard, pseudo_label_quality
+from tasks.evaluate import evaluate_collection_shard, evaluate_shard, pseudo_label_quality
 from tasks.features import extract_features_shard
 from tasks.filter import filter_precision_check, filter_pseudo_labels
 from tasks.fit import fit_shard
@@ -73,6 +74,7 @@ STAGE_MODULES = {
     "plan_views": "bat3r_core.fitting.augment",
     "raw_images": "bat3r_core.datasets",
     "evaluate": "bat3r_core.evaluation", "report": "bat3r_core.report",
+    "evaluate_collection": "bat3r_core.evaluation_masks",
 }
 """The bat3r_core module each stage runs; their code versions go into ``manifest.json`` and the cache keys."""
 
@@ -184,8 +186,30 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
     return _finish_iteration(it, predictor)
 
 
+def _evaluate_collection(it: _Iteration, cfg: dict[str, Any], predictor: str) -> None:
+    """Φ_iteration on the collection, without 3D ground truth (``bat3r_core.evaluation_masks``): its predictions
+    (``iter-ii/evaluate/collection_infer``), then mask IoUs of them and of this iteration's fits (none at 0)."""
+    layout, mff, iteration = it.settings.layout, it.settings.max_failed_fraction, it.iteration
+    collection_dir, evaluate_dir = layout.run_stage_dir("collection"), layout.stage_dir(iteration, "evaluate")
+    if not shards.list_shards(collection_dir):
+        return
+    infer = it.run("collection_infer", infer_shard,
+                   [{"predictor": predictor, "collection_dir": str(collection_dir), "index": i,
+                     "out_dir": str(evaluate_dir / COLLECTION_INFER_DIR), "config": cfg["infer"]}
+                    for i in shards.list_shards(collection_dir)], max_failed_fraction=mff)
+    fit_dir = str(layout.stage_dir(iteration, "fit")) if iteration > 0 else None
+    it.run("evaluate_collection", evaluate_collection_shard,
+           [{"predictions_dir": str(evaluate_dir / COLLECTION_INFER_DIR), "index": r["index"],
+             "collection_dir": str(collection_dir), "fit_dir": fit_dir,
+             "out_dir": str(evaluate_dir / COLLECTION_ROWS_DIR),
+             "config": {"asset": it.settings.assets.asset, "iteration": iteration}} for r in infer.records],
+           max_failed_fraction=mff)
+
+
 def _evaluate_test(it: _Iteration, cfg: dict[str, Any], predictor: str) -> None:
-    """Φ_iteration on the test split: inference shards, then per-sample evaluation rows (needs ground truth)."""
+    """Φ_iteration on the collection (mask IoUs, :func:`_evaluate_collection`) and on the test split: inference
+    shards, then per-sample evaluation rows (needs ground truth)."""
+    _evaluate_collection(it, cfg, predictor)
     layout, mff, iteration = it.settings.layout, it.settings.max_failed_fraction, it.iteration
     test_dir = layout.run_stage_dir("test")
     if cfg["evaluate"] is None or not shards.list_shards(test_dir):

@@ -95,7 +95,8 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
     for i in (1, 2):
         it = result["iterations"][i]
         assert set(it["states"]) == {"infer", "fit", "pseudo_labels", "filter", "filter_check", "plan", "render",
-                                     "features", "train", "test_infer", "evaluate"}
+                                     "features", "train", "collection_infer", "evaluate_collection", "test_infer",
+                                     "evaluate"}
         fits = shards.read_table(layout.stage_dir(i, "fit")).to_pylist()
         assert len(fits) == 4 and sum(r["status"] == "ok" for r in fits) >= 1
         jobs = shards.read_table(layout.stage_dir(i, "render")).to_pylist()
@@ -136,8 +137,27 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
                                layout.stage_dir(1, "evaluate") / "pseudo_labels.parquet")
     assert np.isfinite(analysis.summarize_pseudo_labels(joined).mean_vertex_err_cm)
     metrics = pq.read_table(layout.metrics).to_pylist()
-    assert sorted(r["iteration"] for r in metrics) == [0, 1, 2]
-    assert all(r["n"] + r["n_failed"] == 4 and r["mcd_cm"] > 0 for r in metrics)
+    test_rows = [r for r in metrics if r["split"] == "test"]
+    assert sorted(r["iteration"] for r in test_rows) == [0, 1, 2]
+    assert all(r["n"] + r["n_failed"] == 4 and r["mcd_cm"] > 0 for r in test_rows)
+    # evaluation without 3D ground truth: Φ_i's and iteration i's fits' mask IoUs on the collection, per iteration
+    collection = {r["iteration"]: r for r in metrics if r["split"] == "collection"}
+    assert sorted(collection) == [0, 1, 2] and len(metrics) == 6
+    for i, row in collection.items():
+        per_image = shards.read_table(layout.stage_dir(i, "evaluate") / "collection").to_pylist()
+        assert len(per_image) == 4 and row["n"] + row["n_failed"] == 4 and row["n"] >= 1
+        assert np.isfinite(row["pred_mask_iou"]) and 0.0 <= row["pred_mask_iou"] <= 1.0
+        assert row["mcd_cm"] is None
+        if i == 0:  # the canonical iteration has no fits of its own
+            assert row["n_fits"] == 0 and row["fit_mask_iou"] is None
+            continue
+        ok_fits = sum(r["status"] == "ok" for r in shards.read_table(layout.stage_dir(i, "fit")).to_pylist())
+        assert 1 <= row["n_fits"] <= ok_fits
+        assert np.isfinite(row["fit_mask_iou"]) and 0.0 < row["fit_mask_iou"] <= 1.0
+        assert row["fit_mask_iou"] == pytest.approx(np.mean([r["fit_mask_iou"] for r in per_image
+                                                             if r["fit_status"] == "ok"]))
+    report = layout.report.read_text()
+    assert '<section id="collection-masks">' in report and "Latest (collection, iteration 2)" in report
 
 
 def test_rerun_hits_the_cache_for_every_task(first_run, catalog):
@@ -150,7 +170,8 @@ def test_rerun_hits_the_cache_for_every_task(first_run, catalog):
     again = bootstrap(category="toy", preset="tiny", iterations=2, run_name="t1", overrides=TINY)
     states = again["iterations"][0]["states"]
     assert states == {"plan": ["Cached"], "render": ["Cached", "Cached"], "features": ["Cached", "Cached"],
-                      "train": ["Cached"], "test_infer": ["Cached"], "evaluate": ["Cached"]}
+                      "train": ["Cached"], "collection_infer": ["Cached"], "evaluate_collection": ["Cached"],
+                      "test_infer": ["Cached"], "evaluate": ["Cached"]}
     for it in again["iterations"][1:]:
         assert all(s == "Cached" for stage in it["states"].values() for s in stage), it["states"]
     assert shards.content_hash([layout.metrics]) == metrics
