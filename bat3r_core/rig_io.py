@@ -481,11 +481,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                 blended = np.einsum("vk,kij->vij", w_norm, rebind)  # (n, 4, 4)
                 x = np.einsum("vij,vj->vi", blended, ph)[:, :3]
                 w = np.zeros((len(pos), nj))
-                np.add.at(w, (slice(None), column), w_norm)
-                unweighted = (sums[:, 0] <= 0).sum()
-                if unweighted:  # glTF requires weights on every vertex; attach stray ones to the root joint
-                    w[sums[:, 0] <= 0, parents.index(-1)] = 1.0
-                    notes.append(f"{label}: {unweighted} vertices without skin weights attached to the root joint")
+                np.add.at(w, (slice(None), column), w_local)  # as stored: Rig refuses weights that do not sum to 1
             else:
                 x = ph @ rigid.T
                 x = x[:, :3]

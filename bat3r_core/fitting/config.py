@@ -45,7 +45,12 @@ class FittingConfig:
             longest side of its rest bounding box; 0 uses the threshold as an absolute distance. For the 2.36 m
             toy the default gives 0.5 · 2.36 / 2.7 = 0.44 m.
         repulsion_k: nearest neighbours per vertex considered for repulsion (100).
-        repulsion_radius: r of ``relu(r² − d²)²``, metres (0.05).
+        repulsion_radius: r of ``relu(r² − d²)²``, metres for an asset of length ``objective_reference_length``
+            (0.05 for the 2.7 m horse), scaled with the asset's length.
+        objective_reference_length: the fitting objective is evaluated in units of (asset length / this): the
+            data term's distances and Huber δ, the edge (∝ length⁴), volume (∝ length⁶) and repulsion terms are
+            those of the asset scaled to this length, so the paper's λ (tuned on a 2.7 m horse) weigh the terms of a
+            0.5 m dog as they weigh a horse's. 0 evaluates everything in metres.
         repulsion_refresh_steps: the repulsion candidate pairs (k-NN in the posed state) are recomputed every this
             many steps; pairs are searched within ``2 r`` so motion between refreshes is covered.
         bone_scale_bounds: bone scales are clamped to this range ([0.5, 2]).
@@ -93,6 +98,7 @@ class FittingConfig:
     num_control_points: int = 200
     repulsion_geodesic_threshold: float = 0.5
     repulsion_reference_length: float = HORSE_LENGTH_M
+    objective_reference_length: float = HORSE_LENGTH_M
     repulsion_k: int = 100
     repulsion_radius: float = 0.05
     repulsion_refresh_steps: int = 20
@@ -127,7 +133,8 @@ class FittingConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FittingConfig.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("weight_angle", "weight_edge", "weight_volume", "weight_repulsion", "weight_scale",
-                     "min_confidence", "repulsion_reference_length", "weld_relative_tolerance",
+                     "min_confidence", "repulsion_reference_length", "objective_reference_length",
+                     "weld_relative_tolerance",
                      "densify_max_edge_fraction"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"FittingConfig.{name} must be >= 0, got {getattr(self, name)!r}")

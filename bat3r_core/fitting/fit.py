@@ -105,6 +105,8 @@ class FittingAsset:
             ``reg_mesh.source_vertex``.
         vertex_index: KD-tree over the fitting mesh's rest vertices.
         geodesic_threshold: repulsion geodesic threshold for this asset, metres.
+        length: longest side of the rest mesh's bounding box, metres (the objective's unit, see
+            ``FittingConfig.objective_reference_length``).
         left_right: (P, 2) int64 left/right joint pairs. device, dtype: of the tensors.
     """
 
@@ -122,6 +124,7 @@ class FittingAsset:
     reg_geodesics: DenseGeodesics | LandmarkGeodesics | SubsetGeodesics
     vertex_index: VertexIndex
     geodesic_threshold: float
+    length: float
     left_right: torch.Tensor
     device: torch.device
     dtype: torch.dtype
@@ -163,7 +166,7 @@ class FittingAsset:
                                 device=device, full_mesh=((welded.rest_vertices, welded.faces, welded.skin_weights)
                                                           if reg_mesh.is_proxy else None)),
                             geodesics=geo, reg_geodesics=reg_geo, vertex_index=VertexIndex(fv),
-                            geodesic_threshold=config.geodesic_threshold_for(length),
+                            geodesic_threshold=config.geodesic_threshold_for(length), length=length,
                             left_right=torch.as_tensor(pairs, device=device), device=device, dtype=dtype)
 
 
@@ -444,7 +447,9 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     if not config.fit_root_rotation:
         joint_mask[torch.as_tensor(asset.rig.parents < 0, device=dev)] = 0.0
     lo, hi = (float(np.log(x)) for x in config.bone_scale_bounds)
-    radius = config.repulsion_radius
+    # the objective in units of the asset's length relative to the reference animal (config docstring)
+    unit = asset.length / config.objective_reference_length if config.objective_reference_length > 0 else 1.0
+    radius = config.repulsion_radius * unit
     pair_batch = torch.zeros(0, dtype=torch.long, device=dev)
     pairs = torch.zeros(0, 2, dtype=torch.long, device=dev)
 
@@ -472,11 +477,11 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                                          dtype=torch.long, device=dev)
             pairs = torch.as_tensor(np.concatenate(found), dtype=torch.long, device=dev).reshape(-1, 2)
         terms = {
-            "data": data_term(posed_ctrl, target_t, mask_t, config.huber_delta),
+            "data": data_term(posed_ctrl / unit, target_t / unit, mask_t, config.huber_delta),
             "angle": angle_term(th, joint_mask),
-            "edge": reg.edge(verts_u),
-            "volume": reg.volume(verts_u),
-            "repulsion": reg.repulsion(verts_u, pair_batch, pairs, radius, b),
+            "edge": reg.edge(verts_u) / unit ** 4,
+            "volume": reg.volume(verts_u) / unit ** 6,
+            "repulsion": reg.repulsion(verts_u, pair_batch, pairs, radius, b) / unit ** 4,
             "scale": scale_term(scales, asset.left_right),
         }
         warm = 1.0

@@ -672,3 +672,27 @@ def test_points_npz_round_trip_and_fit_points_file(toy, toy_fit, tmp_path, geo_c
     np.savez(tmp_path / "broken.npz", offsets=np.array([0, 5]), sample_id=np.array(["a"]))
     with pytest.raises(ValueError, match=r"missing array\(s\)"):
         read_points_npz(tmp_path / "broken.npz")
+
+
+def test_a_small_animal_fits_like_a_horse_sized_one(toy, geo_cache, one_thread):
+    """The objective is evaluated in units of the asset's length (objective_reference_length): a toy shrunk to a
+    0.47 m puppy fits its noisy clouds as well, relative to its size, as the 2.36 m toy; in metres (the reference
+    length off) the paper's angle weight dominates the shrunk data term and the fits stay near the rest pose."""
+    import dataclasses
+
+    small = dataclasses.replace(toy, name="small", rest_vertices=0.2 * toy.rest_vertices,
+                                rest_transforms=toy.rest_transforms * np.array([1, 1, 1, 0.2, 1, 1, 1, 0.2, 1, 1, 1,
+                                                                                0.2, 1, 1, 1, 1]).reshape(4, 4),
+                                left_right_pairs=())
+    theta, _ = sample_toy_natural_poses(4, seed=4_411)
+    errors = {}
+    for name, rig in (("toy", toy), ("small", small)):
+        insts, truth = _instances(rig, theta, TOY_BODY_FRAME, 8_123, 0.004 if name == "toy" else 0.0008, 0.0)
+        length = float(np.ptp(rig.rest_vertices, axis=0).max())
+        for ref in ((2.7, 0.0) if name == "small" else (2.7,)):
+            config = dataclasses.replace(preset("synthetic"), objective_reference_length=ref,
+                                         inlier_distance=0.1 * length / 2.36)
+            result = fit_batch(FittingAsset.prepare(rig, config, cache_dir=geo_cache), insts, config)
+            errors[name, ref] = _errors(rig, result, truth)[0].mean() / length
+    assert errors["small", 2.7] < 1.25 * errors["toy", 2.7] + 1e-3, errors
+    assert errors["small", 0.0] > 1.5 * errors["small", 2.7], errors
