@@ -193,32 +193,6 @@ def _fit_check(report: AssetCheckReport, rig, spec: dict, fitting_config, num_po
                f"(>= {100 * THRESHOLDS['fit_beats_rest']:.0f} %)")
 
 
-_IMPORTER_SCRIPT = r"""
-import sys, json, numpy as np, bpy
-src, out = sys.argv[1], sys.argv[2]
-bpy.ops.wm.read_factory_settings(use_empty=True)
-bpy.ops.import_scene.gltf(filepath=src)
-for o in bpy.context.scene.objects:
-    if o.type == "ARMATURE":
-        o.data.pose_position = "REST"
-dg = bpy.context.evaluated_depsgraph_get()
-dg.update()
-chunks = []
-for o in bpy.context.scene.objects:
-    if o.type != "MESH" or o.hide_render or o.hide_get():
-        continue
-    ev = o.evaluated_get(dg)
-    me = ev.to_mesh()
-    co = np.empty(len(me.vertices) * 3)
-    me.vertices.foreach_get("co", co)
-    m = np.array(ev.matrix_world)
-    co = co.reshape(-1, 3) @ m[:3, :3].T + m[:3, 3]
-    chunks.append(co)
-    ev.to_mesh_clear()
-np.save(out, np.concatenate(chunks) if chunks else np.zeros((0, 3)))
-"""
-
-
 def _importer_check(report: AssetCheckReport, source: Path, rig, info, scale: float, up_axis: str) -> None:
     """Blender's glTF importer (armature at its rest position) against bat3r's rest vertices.
 
@@ -245,8 +219,8 @@ def _importer_check(report: AssetCheckReport, source: Path, rig, info, scale: fl
 
     with tempfile.TemporaryDirectory(prefix="bat3r_import_") as tmp:
         out = Path(tmp) / "verts.npy"
-        proc = subprocess.run([sys.executable, "-c", _IMPORTER_SCRIPT, str(source), str(out)], capture_output=True,
-                              text=True, timeout=600)
+        proc = subprocess.run([sys.executable, "-m", "bat3r_core.render.blender_rest", str(source), str(out)],
+                              capture_output=True, text=True, timeout=600)
         if proc.returncode != 0 or not out.is_file():
             report.add("importer cross-check", False, f"Blender's importer failed: {(proc.stderr or '')[-400:]}")
             return
