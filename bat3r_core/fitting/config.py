@@ -29,7 +29,7 @@ class FittingConfig:
         rotation_lr_halving_steps: θ's and the bone scales' learning rates are halved every this many steps (100;
             the reference halves both). θ is wrapped to |θ_j| <= π after every step (the same rotations).
         huber_delta: δ of the Huber data term, metres (0.1).
-        weight_angle, weight_edge, weight_volume, weight_repulsion, weight_scale: λ of Eq. 3, acting on the terms
+        weight_angle, weight_edge, weight_volume, weight_repulsion, weight_scale: λ of Eq. 4, acting on the terms
             normalised as the reference normalises them (mean data term, absolute volume change; ``losses``).
         warmup: start the angle, edge and volume weights at ``warmup_factor`` times and decay them linearly to
             1x over ``warmup_steps`` steps (the reference warm-up).

@@ -1,4 +1,4 @@
-"""The terms of the fitting objective (Eq. 3 of the paper), batched over instances (torch, CPU or CUDA).
+"""The terms of the fitting objective (Eq. 4 of the paper), batched over instances (torch, CPU or CUDA).
 
 Every function returns one value per instance, shape ``(B,)``. Vertices are ``(B, V, 3)`` metres. Following the
 paper, the edge, volume and repulsion terms are evaluated on the *unscaled* articulated mesh (bone scales at 1, no
@@ -15,7 +15,7 @@ is normalised the way that code normalises it (Adam is invariant to the overall 
 ratios between terms matter); the checks are in docs/fitting.md ("Weighting as the reference weights it") and
 ``tests/core/test_fitting_losses.py`` (``test_gradient_ratios_match_the_full_mesh_reference``):
 
-* data: **mean** over a sample's valid control points of ``Huber_δ(‖p_i − v_j*(i)‖)`` (Eq. 2 prints a sum; the
+* data: **mean** over a sample's valid control points of ``Huber_δ(‖p_i − v_j*(i)‖)`` (Eq. 3 prints a sum; the
   reference averages, and a sum made every regulariser ~200× weaker than tuned).
 * angle: mean over optimised joints of ``‖θ_j‖²``.
 * edge: mean over mesh edges of ``(|e|² − |e_rest|²)²`` (metres⁴) on the full mesh. On a decimated proxy, whose
