@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from bat3r_core import shards
 from bat3r_core.config_utils import from_mapping
@@ -34,6 +34,34 @@ def _discard_stale_checkpoint(out_dir: Path, inputs_hash: str) -> None:
         shards.atomic_write_text(stamp, json.dumps({"inputs_hash": inputs_hash}))
 
 
+def dashboard_progress(out_dir: str) -> Callable[[dict[str, Any]], None]:
+    """A ``Trainer`` progress callback for a Prefect task run: an INFO line in the task's log and a progress
+    artifact (percent done, step rate, loss, ETA) updated in place on the dashboard. A failure to publish the
+    artifact is logged once and never stops training."""
+    from prefect.artifacts import create_progress_artifact, update_progress_artifact
+    from prefect.logging import get_run_logger
+
+    logger, state = get_run_logger(), {"id": None, "failed": False}
+
+    def report(progress: dict[str, Any]) -> None:
+        line = training.progress_line(progress)
+        logger.info("training %s", line)
+        if state["failed"]:
+            return
+        description = f"training {out_dir}: {line}"
+        try:
+            if state["id"] is None:
+                state["id"] = create_progress_artifact(progress=100.0 * progress["fraction"], description=description)
+            else:
+                update_progress_artifact(state["id"], progress=100.0 * progress["fraction"], description=description)
+        except Exception as e:  # noqa: BLE001 - the dashboard is not worth a failed training run
+            state["failed"] = True
+            logger.warning("training progress artifact not published (%s: %s); the log lines continue",
+                           type(e).__name__, e)
+
+    return report
+
+
 def _inputs(p: Mapping[str, Any]) -> list[Path]:
     init = p["config"].get("init_from")
     return training_inputs(p["shards_dir"]) + ([Path(init)] if init else [])
@@ -60,7 +88,7 @@ def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dic
     with gpu_slot() as device:
         path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
                                 device=None if device is None else f"cuda:{device}",
-                                init_from=config.get("init_from")).train()
+                                init_from=config.get("init_from"), progress=dashboard_progress(out_dir)).train()
     log = Path(out_dir) / "train_log.jsonl"
     lines = log.read_text().splitlines() if log.is_file() else []
     last = json.loads(lines[-1]) if lines else {}

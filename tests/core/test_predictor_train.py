@@ -277,3 +277,25 @@ def test_ddp_two_processes_gloo_keep_identical_weights(shards16, tmp_path):
     assert all(torch.equal(model.state_dict()[k], a[k]) for k in a)
     ckpt = torch.load(tmp_path / "out" / CHECKPOINT_NAME, weights_only=True)
     assert (ckpt["step"], ckpt["world_size"]) == (3, 2)
+
+
+def test_training_reports_its_progress_at_a_steady_interval(shards16, tmp_path, caplog):
+    from bat3r_core.predictor.train import progress_line
+
+    reports = []
+    trainer = Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "a", progress=reports.append,
+                      progress_interval_s=0.0)
+    trainer.train()
+    assert [r["step"] for r in reports] == list(range(1, SMALL_TRAIN.steps + 1))  # interval 0: every step
+    assert all(r["steps"] == SMALL_TRAIN.steps and r["steps_per_s"] > 0 for r in reports)
+    assert reports[-1]["eta_s"] == 0.0 and reports[-1]["fraction"] == 1.0
+    assert reports[0]["eta_s"] > reports[-2]["eta_s"] > 0
+    line = progress_line({"step": 1200, "steps": 5000, "fraction": 0.24, "steps_per_s": 9.44, "loss": -2.1814,
+                          "eta_s": 402.5})
+    assert line == "step 1200/5000 (24%), 9.4 steps/s, loss -2.18, ETA 6.7 min"
+    # the default: an INFO line after the last step (the interval is longer than this run)
+    with caplog.at_level("INFO", logger="bat3r_core.predictor.train"):
+        Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "b").train()
+    lines = [r.getMessage() for r in caplog.records if r.name == "bat3r_core.predictor.train"]
+    assert lines == [f"training step {SMALL_TRAIN.steps}/{SMALL_TRAIN.steps} (100%), " + lines[0].split(", ", 1)[1]]
+    assert "ETA 0 s" in lines[0]
