@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -74,6 +75,9 @@ def add_bootstrap_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-failed-fraction", type=float, default=0.1,
                         help="a stage continues while at most this fraction of its shards failed (default 0.1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampled render jobs (default 0)")
+    parser.add_argument("--init-predictor", type=Path, default=None, metavar="CHECKPOINT",
+                        help="start from this trained Φ_0 (e.g. runs/toy/demo/iter-00/train/predictor.pt) instead of "
+                             "training one; iteration 0 only evaluates it")
 
 
 def bootstrap_parameters(args: argparse.Namespace, parser: argparse.ArgumentParser | None = None
@@ -85,6 +89,7 @@ def bootstrap_parameters(args: argparse.Namespace, parser: argparse.ArgumentPars
         "overrides": parse_overrides(args.overrides, parser), "task_runner": args.task_runner,
         "max_failed_fraction": args.max_failed_fraction, "seed": args.seed,
         "catalog": None if args.catalog is None else str(Path(args.catalog).expanduser().resolve()),
+        "init_predictor": None if args.init_predictor is None else str(Path(args.init_predictor).expanduser().resolve()),
     }
     params.update({name: bool(getattr(args, name)) for name in ABLATION_SWITCHES})
     return params
@@ -301,6 +306,7 @@ def _cmd_bootstrap(args: argparse.Namespace) -> int:
         return 2
     if str(root) not in sys.path:
         sys.path.insert(0, str(root))
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")  # a local run's temporary server: no telemetry
     from flows.bootstrap import run_bootstrap
 
     return run_bootstrap(bootstrap_parameters(args, args.parser))

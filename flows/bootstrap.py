@@ -32,6 +32,11 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script or loaded by path (deployments): make the project root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+if __name__ == "__main__":  # a local run's temporary Prefect server: no telemetry (and no ERROR line offline)
+    import os
+
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
 import dataclasses
 from typing import Any, Mapping, Sequence
 
@@ -151,15 +156,22 @@ def _data_drops(mappings: Sequence[Mapping[str, Any]] | None) -> list[SampleDrop
 @flow(name="canonical-initialisation", flow_run_name="{category}-{run_name}-iter-00")
 def canonical_initialisation(category: str, preset: str, run_name: str, overrides: dict[str, Any],
                              ablations: dict[str, bool], seed: int, max_failed_fraction: float,
-                             catalog: str | None = None, data_drops: list[dict] | None = None) -> dict[str, Any]:
+                             catalog: str | None = None, data_drops: list[dict] | None = None,
+                             init_predictor: str | None = None) -> dict[str, Any]:
     """Iteration 0: sample render jobs around the rest-pose mesh, render them, extract features, train Φ_0.
     catalog: the data catalog file (default: ``$BAT3R_CATALOG`` / ``./data_catalog.yaml``). data_drops: the run
     data's ``SampleDrops`` mappings (collection, test split), listed in this iteration's summary.
+    init_predictor: a trained Φ_0 checkpoint to start from instead (iteration 0 then only evaluates it).
     Returns ``{"stages": {stage: [records]}, "states": {stage: [state names]}, "predictor": path, "metrics": rows}``."""
     settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
                            max_failed_fraction=max_failed_fraction)
     layout, cfg, mff = settings.layout, _stage_configs(settings, seed), settings.max_failed_fraction
     it = _Iteration(settings, 0, _data_drops(data_drops))
+    if init_predictor is not None:
+        get_run_logger().info("iteration 0: Φ_0 from %s (no canonical renders or training)", init_predictor)
+        it.notes.append(f"Φ_0 is {init_predictor} (init_predictor): not trained in this run.")
+        _evaluate_test(it, cfg, str(init_predictor))
+        return _finish_iteration(it, str(init_predictor))
     need = training_need(settings.train.batch_size)
 
     plan = it.run("plan", plan_sampled_jobs, [{"asset": settings.assets.asset,
@@ -357,7 +369,7 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
               no_view_augmentation: bool = False, random_poses: bool = False, raw_images: bool = False,
               no_pseudo_label_filter: bool = False,
               task_runner: str = "local", max_failed_fraction: float = 0.1, seed: int = 0,
-              catalog: str | None = None) -> dict[str, Any]:
+              catalog: str | None = None, init_predictor: str | None = None) -> dict[str, Any]:
     """The bootstrap loop of ``category`` at run preset ``preset`` (``tiny``, ``demo``, ``paper``).
 
     Args:
@@ -375,6 +387,9 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
         catalog: the data catalog file (default: ``$BAT3R_CATALOG``, else ``./data_catalog.yaml`` of the process
             running the flow — a deployment's worker). The resolved absolute path is what every subflow reads and
             what ``manifest.json`` records (``config.parameters.catalog``).
+        init_predictor: start the loop from this trained Φ_0 checkpoint (e.g. another run's
+            ``iter-00/train/predictor.pt``) instead of training one: iteration 0 only evaluates it. Ablations of
+            one Φ_0 (``benchmarks/bench_fidelity.py``) share it this way.
 
     A stage that drops more than ``bat3r_core.runs.DROP_WARN_FRACTION`` of its samples is reported (log warning,
     ``…-drops`` artifact, iteration summary); a stage that leaves fewer samples than the next one needs stops the
@@ -397,9 +412,14 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
     if random_poses and n_iter > 0:
         raise ValueError("random_poses is a baseline trained once on random poses: run it with iterations=0")
     layout = settings.layout.create()
+    if init_predictor is not None:
+        init_predictor = str(Path(init_predictor).expanduser().resolve())
+        if not Path(init_predictor).is_file():
+            raise FileNotFoundError(f"init_predictor: {init_predictor} is not a file (expected a predictor "
+                                    "checkpoint, e.g. runs/<category>/<run>/iter-00/train/predictor.pt)")
     write_manifest(layout, {**settings.to_mapping(), "parameters": {
         "iterations": n_iter, "task_runner": task_runner, "seed": seed, "overrides": overrides,
-        "catalog": catalog_file}}, STAGE_MODULES)
+        "catalog": catalog_file, "init_predictor": init_predictor}}, STAGE_MODULES)
     logger.info("run folder %s (catalog %s)", layout.root, catalog_file)
 
     runner = make_task_runner(task_runner)
@@ -414,7 +434,7 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
     ablation_dict = dataclasses.asdict(settings.ablations)
     results = [canonical_initialisation.with_options(task_runner=runner)(
         category, preset, run_name, overrides, ablation_dict, seed, settings.max_failed_fraction, catalog_file,
-        data_drops)]
+        data_drops, init_predictor)]
     for iteration in range(1, n_iter + 1):
         logger.info("iteration %d of %d", iteration, n_iter)
         results.append(refinement_iteration.with_options(task_runner=runner)(

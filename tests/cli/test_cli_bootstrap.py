@@ -33,7 +33,7 @@ def test_bat3r_bootstrap_has_exactly_the_options_of_the_flow_script():
 
     assert _options(_subparser("bootstrap")) == _options(flow_parser())
     assert {"--category", "--preset", "--catalog", "--iterations", "--run-name", "--set", "--task-runner",
-            "--max-failed-fraction", "--seed", "--gaussian-cameras", "--no-fitting-regularisation",
+            "--max-failed-fraction", "--seed", "--init-predictor", "--gaussian-cameras", "--no-fitting-regularisation",
             "--no-view-augmentation", "--no-pseudo-label-filter", "--random-poses", "--raw-images"} == _options(flow_parser())
     assert set(ABLATION_SWITCHES) == {f.name for f in dataclasses.fields(Ablations)}
     # the parsed options are exactly the flow's keyword arguments
