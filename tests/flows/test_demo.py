@@ -1,4 +1,5 @@
 """``make demo``'s recorded figures and verdict (flows/demo.py), from metrics rows as metrics.parquet holds them."""
+import json
 import math
 
 from flows.demo import demo_figures
@@ -26,3 +27,17 @@ def test_only_a_demo_run_from_an_empty_folder_is_recorded():
     assert "cached stages were reused" in record_refusal("demo", no_record=False, resumed=True)
     assert "only the demo preset" in record_refusal("tiny", no_record=False, resumed=False)
     assert record_refusal("demo", no_record=True, resumed=False) == "--no-record"
+
+
+def test_control_verdict_points_at_the_same_compute_references(tmp_path):
+    from flows.demo import control_verdict
+
+    assert len(control_verdict(11.0, tmp_path)) == 2  # no recorded references: the caveat and where to look
+    (tmp_path / "demo_control.json").write_text(json.dumps(
+        {"iterations": 2, "mcd_control_cm_iter2": 10.15, "mcd_oracle_cm_iter2": 9.96}))
+    (tmp_path / "fidelity.json").write_text(json.dumps(
+        {"iterations": 2, "mcd_loop_iter2": 7.1, "mcd_control_iter2": 8.0, "mcd_oracle_iter2": 6.0}))
+    lines = control_verdict(11.48, tmp_path)
+    assert "control 10.15 cm, oracle (true labels) 9.96 cm; this run's loop 11.48 cm — at or behind" in lines[1]
+    assert "loop 7.10, control 8.00, oracle 6.00 cm" in lines[2]
+    assert "ahead of the control" in control_verdict(9.0, tmp_path)[1]
