@@ -7,7 +7,7 @@ STAMP := $(VENV)/.bat3r-installed
 TORCH_VERSION := 2.13.0
 PYTEST_ARGS ?=
 
-.PHONY: install test demo bench bench-demo server server-stop clean browser-deps system-libs
+.PHONY: install test demo bench bench-demo bench-fidelity server server-stop clean browser-deps system-libs
 
 $(PY):
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "bat3r needs Python 3.11 ($(PYTHON) not found; set PYTHON=...)"; exit 1; }
@@ -49,17 +49,24 @@ test: install browser-deps
 	$(PY) -m pytest $(PYTEST_ARGS)
 
 demo: install
-	$(PY) flows/demo.py
+	PREFECT_SERVER_ANALYTICS_ENABLED=false $(PY) flows/demo.py
 
 # Stage benchmarks; the analyses of a finished demo run (control, fit oracle) are `make bench-demo` (after `make demo`:
 # rerunning the demo here would reuse its cached stages and could not re-measure it).
 RUN_ANALYSES := benchmarks/bench_demo_control.py benchmarks/bench_fit_oracle.py
 bench: install
-	@for b in $(filter-out $(RUN_ANALYSES),$(wildcard benchmarks/bench_*.py)); do \
+	@for b in $(filter-out $(RUN_ANALYSES) benchmarks/bench_fidelity.py,$(wildcard benchmarks/bench_*.py)); do \
 		echo "== $$b"; $(PY) $$b || exit 1; done
 
 bench-demo: install
 	@for b in $(RUN_ANALYSES); do echo "== $$b"; $(PY) $$b || exit 1; done
+
+# The loop against its same-compute control and oracle, with the paper's ablations, at the catalog's `bench` preset
+# (~2 h on 2 cores; resumable: rerun after an interruption), then the fit diagnosis of its Φ₀ predictions.
+BENCH_FIDELITY_ARGS ?= --ablations
+bench-fidelity: install
+	PREFECT_SERVER_ANALYTICS_ENABLED=false $(PY) benchmarks/bench_fidelity.py --preset bench --run-name bench $(BENCH_FIDELITY_ARGS)
+	$(PY) benchmarks/bench_fit_oracle.py --run-name bench --record-as fit_oracle_bench
 
 # A local Prefect server (127.0.0.1), the process work pool, the deployments of deploy/prefect.yaml and a worker.
 server: install

@@ -57,8 +57,8 @@ def parse_overrides(items: list[str], parser: argparse.ArgumentParser | None = N
 def add_bootstrap_arguments(parser: argparse.ArgumentParser) -> None:
     """The options of a bootstrap run (``bat3r bootstrap`` and ``python flows/bootstrap.py``)."""
     parser.add_argument("--category", default="toy", help="catalog category (default: toy)")
-    parser.add_argument("--preset", default="tiny", help="run preset of the catalog: tiny, demo, paper (default: "
-                                                         "tiny)")
+    parser.add_argument("--preset", default="tiny",
+                        help="run preset of the catalog: tiny, demo, bench, paper (default: tiny)")
     add_catalog_argument(parser)
     parser.add_argument("--iterations", type=int, default=None,
                         help="bootstrap iterations after the canonical initialisation (default: the preset's)")
@@ -89,7 +89,8 @@ def bootstrap_parameters(args: argparse.Namespace, parser: argparse.ArgumentPars
         "overrides": parse_overrides(args.overrides, parser), "task_runner": args.task_runner,
         "max_failed_fraction": args.max_failed_fraction, "seed": args.seed,
         "catalog": None if args.catalog is None else str(Path(args.catalog).expanduser().resolve()),
-        "init_predictor": None if args.init_predictor is None else str(Path(args.init_predictor).expanduser().resolve()),
+        "init_predictor": (None if args.init_predictor is None
+                           else str(Path(args.init_predictor).expanduser().resolve())),
     }
     params.update({name: bool(getattr(args, name)) for name in ABLATION_SWITCHES})
     return params
@@ -358,7 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     rd.add_argument("--jobs", required=True, type=Path, help="render jobs (Parquet, docs/CONVENTIONS.md schema)")
     rd.add_argument("--asset", required=True, type=Path, help="rigged asset (.glb/.gltf/.fbx/.blend)")
     rd.add_argument("--out", required=True, type=Path, help="output folder of the training shard")
-    rd.add_argument("--preset", default="tiny", help="run preset whose render settings to use (tiny, demo, paper)")
+    rd.add_argument("--preset", default="tiny",
+                    help="run preset whose render settings to use (tiny, demo, bench, paper)")
     rd.add_argument("--texture", action="append", help="texture image or toy:<coat> (repeatable; default: the "
                     "asset's own base-colour texture)")
     rd.add_argument("--envmap", action="append", help="HDR/EXR environment map (repeatable; default: a sky)")
@@ -381,7 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train a dual point map predictor on rendered training shards")
     tr.add_argument("--shards", required=True, type=Path, help="folder of training shards (part-NNNNN.parquet/.npz)")
     tr.add_argument("--out", required=True, type=Path, help="output folder (checkpoint.pt, predictor.pt, log)")
-    tr.add_argument("--preset", default="tiny", help="run preset of the data catalog (tiny, demo, paper)")
+    tr.add_argument("--preset", default="tiny", help="run preset of the data catalog (tiny, demo, bench, paper)")
     tr.add_argument("--steps", type=int, default=None, help="override the preset's number of steps")
     tr.add_argument("--init-from", type=Path, default=None,
                     help="predictor.pt whose weights initialise the model (warm start, e.g. the previous iteration's)")

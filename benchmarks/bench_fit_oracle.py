@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -99,7 +100,8 @@ def substitute(inst: PointCloudInstance, truth: Truth, true_p: bool, true_q: boo
 
 
 def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
-    """Mean vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the rest pose."""
+    """Mean and median vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the
+    rest pose."""
     ok = [r for r in rows if r["status"] == shards.STATUS_OK]
     fitted = evaluation.pseudo_label_errors(ok, gt, rig)
     rest = evaluation.pseudo_label_errors(
@@ -107,7 +109,26 @@ def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
     f = np.array([e["vertex_err_cm"] for e in fitted])
     n = np.array([e["vertex_err_cm"] for e in rest])
     return {"fitted": len(ok), "vertex_err_cm": float(f.mean()), "rest_pose_vertex_err_cm": float(n.mean()),
+            "median_vertex_err_cm": float(np.median(f)), "median_rest_pose_vertex_err_cm": float(np.median(n)),
             "pct_better_than_rest": float(100 * np.mean(f < n))}
+
+
+PRECISION_GOAL = 0.8
+"""The pseudo-label filter's kept fits must beat the rest pose this often (``benchmarks/bench_fidelity.py``)."""
+
+
+def filter_figures(layout, iteration: int) -> dict[str, float]:
+    """The run's own pseudo-label filter against the hidden truth at ``iteration`` (``tasks.filter.PRECISION_FILE``,
+    written by the flow's ``filter_check`` stage): kept fraction, precision and the base rate (the precision of
+    keeping every fit); empty when the run had no filter (``--no-pseudo-label-filter``) or no truth."""
+    from tasks.filter import PRECISION_FILE
+
+    path = layout.stage_dir(iteration, "evaluate") / PRECISION_FILE
+    if not path.is_file():
+        return {}
+    data = json.loads(path.read_text())
+    return {f"filter_{k}": round(float(data[k]), 3) for k in ("precision", "recall", "base_rate", "n_kept",
+                                                               "n_kept_good") if data.get(k) is not None}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -144,14 +165,29 @@ def main(argv: list[str] | None = None) -> dict:
         quality = pose_quality(fit_rows(result), gt, rig)
         figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
         figures[f"pct_better_than_rest_{name}"] = round(quality["pct_better_than_rest"], 1)
+        figures[f"median_fit_vertex_err_cm_{name}"] = round(quality["median_vertex_err_cm"], 2)
         figures["rest_pose_vertex_err_cm"] = round(quality["rest_pose_vertex_err_cm"], 2)
+        figures["median_rest_pose_vertex_err_cm"] = round(quality["median_rest_pose_vertex_err_cm"], 2)
         print(f"{name:>13}: fits {quality['vertex_err_cm']:.2f} cm from the truth (rest pose "
               f"{quality['rest_pose_vertex_err_cm']:.2f} cm), better than the rest pose for "
               f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images", flush=True)
     print("median per-image errors of the predictions: " + ", ".join(
-        f"{k[len('median_'):]} {v}" for k, v in figures.items() if k.startswith("median_")))
+        f"{k[len('median_'):]} {v}" for k, v in figures.items()
+        if k.startswith("median_") and not k.startswith(("median_fit_", "median_rest_"))))
+    figures.update(filter_figures(layout, args.iteration))
+    verdicts = [f"median fit {figures['median_fit_vertex_err_cm_predicted']:.2f} cm vs rest pose "
+                f"{figures['median_rest_pose_vertex_err_cm']:.2f} cm ("
+                + ("below: met" if figures["median_fit_vertex_err_cm_predicted"]
+                   < figures["median_rest_pose_vertex_err_cm"] else "NOT below") + ")"]
+    if "filter_precision" in figures:
+        verdicts.append(f"filter precision {figures['filter_precision']:.2f} (base rate "
+                        f"{figures.get('filter_base_rate', float('nan')):.2f}; goal >= {PRECISION_GOAL}: "
+                        f"{'met' if figures['filter_precision'] >= PRECISION_GOAL else 'NOT met'})")
+    for line in verdicts:
+        print(line)
     record(args.record_as, figures,
-           notes=(f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
+           notes=("; ".join(verdicts) + ". "
+                  f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
                   f"predictions iteration {args.iteration} fitted ({settings.train.steps} training steps per model, "
                   f"{r}x{r}); fits with the run's fitting settings on the predicted maps and with P, Q or both "
                   "replaced by the ray-cast truth at the same pixels and layers"))

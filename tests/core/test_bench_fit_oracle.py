@@ -104,3 +104,17 @@ def test_pose_quality_against_the_rest_pose(scene, toy_rig):
     q = B.pose_quality(rows, {"s0": gt, "s1": gt, "s2": gt}, toy_rig)
     assert q["fitted"] == 2 and q["rest_pose_vertex_err_cm"] > 1.0
     assert q["pct_better_than_rest"] == 50.0  # the truth beats the rest pose, a wild pose does not
+
+
+def test_filter_figures_read_the_runs_precision_check(tmp_path):
+    from bat3r_core.runs import RunLayout
+    from tasks.filter import PRECISION_FILE
+
+    layout = RunLayout(tmp_path, "toy", "r")
+    assert B.filter_figures(layout, 1) == {}  # no filter (ablation) or no truth: nothing to report
+    layout.stage_dir(1, "evaluate").mkdir(parents=True)
+    (layout.stage_dir(1, "evaluate") / PRECISION_FILE).write_text(
+        '{"base_rate": 0.0625, "n": 384, "n_good": 24, "n_kept": 192, "n_kept_good": 16, '
+        '"precision": 0.08333333333333333, "recall": 0.6666666666666666}')
+    assert B.filter_figures(layout, 1) == {"filter_precision": 0.083, "filter_recall": 0.667, "filter_base_rate": 0.062,
+                                           "filter_n_kept": 192, "filter_n_kept_good": 16}

@@ -278,22 +278,6 @@ def test_raw_image_baseline_trains_on_the_photos_with_fitted_labels(first_run, c
     assert arrays["occupancy"][ok].any(axis=(1, 2, 3)).all()
 
 
-def test_no_pseudo_label_filter_renders_every_ok_fit(first_run, catalog):
-    from flows.bootstrap import bootstrap
-
-    result = bootstrap(category="toy", preset="tiny", iterations=1, run_name="nofilter",
-                       no_pseudo_label_filter=True, overrides=TINY)
-    layout = RunLayout(catalog / "runs", "toy", "nofilter")
-    it = result["iterations"][1]
-    assert "filter" not in it["states"] and "filter_check" not in it["states"]
-    assert not layout.stage_dir(1, "filter").exists()
-    fits = shards.read_table(layout.stage_dir(1, "fit")).to_pylist()
-    ok_fits = {r["sample_id"] for r in fits if r["status"] == "ok"}
-    jobs = shards.read_table(layout.stage_dir(1, "render")).to_pylist()
-    assert {j["source_id"] for j in jobs if j["view_kind"] == "estimated"} == ok_fits
-    assert read_manifest(layout)["config"]["ablations"]["no_pseudo_label_filter"] is True
-
-
 def test_baselines_that_do_not_iterate_say_so(prefect_harness, catalog):
     from flows.bootstrap import bootstrap
 

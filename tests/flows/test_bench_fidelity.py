@@ -1,0 +1,142 @@
+"""``make bench-fidelity`` cut down to tiny sizes: the ``bench`` preset through the bootstrap flow, the control and
+oracle rounds from its Φ₀, one ablation from the same Φ₀ (``init_predictor``), the figures, the plot and a resumed
+rerun that trains nothing again."""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from bat3r_core import evaluation, shards
+from bat3r_core.runs import RunLayout, read_manifest
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import bench_fidelity as B  # noqa: E402
+
+# the bench preset at tiny sizes: what CI can afford (the preset's own sizes are make bench-fidelity's)
+BENCH_TINY = {"run.canonical_samples": 8, "run.collection_size": 8, "run.test_size": 4, "shard_size": 4,
+              "train.steps": 4, "train.batch_size": 4, "train.warmup_steps": 1, "train.checkpoint_every": 2,
+              "model.base_channels": 8, "fitting.steps": 20, "fitting.min_valid_points": 5,
+              "fitting.inlier_distance": 1.0, "pseudo_label_filter.min_kept": 2}
+ARGS = ["--preset", "bench", "--run-name", "bt", "--iterations", "1",
+        *[f"--set={k}={json.dumps(v)}" for k, v in BENCH_TINY.items()]]
+
+
+@pytest.fixture(scope="module")
+def catalog(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("catalog")
+    shutil.copy(ROOT / "data_catalog.yaml", folder / "data_catalog.yaml")
+    old = {k: os.environ.get(k) for k in ("BAT3R_CATALOG", "BAT3R_STORAGE_ROOT")}
+    os.environ["BAT3R_CATALOG"] = str(folder / "data_catalog.yaml")
+    os.environ.pop("BAT3R_STORAGE_ROOT", None)
+    yield folder
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+@pytest.fixture(scope="module")
+def bench_run(prefect_harness, catalog, tmp_path_factory):
+    out = tmp_path_factory.mktemp("fidelity")
+    figures = B.main([*ARGS, "--ablations", "no_pseudo_label_filter", "--results-dir", str(out)])
+    return figures, out
+
+
+def test_the_bench_preset_runs_every_arm_from_one_phi0(bench_run, catalog):
+    figures, out = bench_run
+    layout = RunLayout(catalog / "runs", "toy", "bt")
+    test_rows = {int(r["iteration"]): r for r in evaluation.read_metrics(layout.root).to_pylist()
+                 if r["split"] == "test"}
+    assert figures["mcd_loop_iter0"] == round(test_rows[0]["mcd_cm"], 3)
+    assert figures["mcd_loop_iter1"] == round(test_rows[1]["mcd_cm"], 3)
+    # the control and oracle start from the loop's Φ₀ and are trained once more, each to a model of its own
+    for arm in ("control", "oracle"):
+        assert figures[f"mcd_{arm}_iter0"] == figures["mcd_loop_iter0"]
+        assert (layout.root / "fidelity" / arm / "round-01" / "train" / "predictor.pt").is_file()
+        assert math.isfinite(figures[f"mcd_{arm}_iter1"])
+    assert figures["headroom_oracle_over_control"] == pytest.approx(
+        figures["mcd_oracle_iter1"] / figures["mcd_control_iter1"], abs=2e-3)
+    # the ablation is a run of its own that starts from the same Φ₀ and does not train one
+    abl = RunLayout(catalog / "runs", "toy", "bt-no_pseudo_label_filter")
+    manifest = read_manifest(abl)
+    assert manifest["config"]["ablations"]["no_pseudo_label_filter"] is True
+    assert manifest["config"]["parameters"]["init_predictor"] == str(
+        (layout.stage_dir(0, "train") / "predictor.pt").resolve())
+    assert not abl.stage_dir(0, "train").exists()
+    # --no-pseudo-label-filter: no filter stage, and every ok fit is rendered from its estimated view
+    assert not abl.stage_dir(1, "filter").exists() and not (abl.stage_dir(1, "evaluate") / "pseudo_label_filter.json"
+                                                           ).exists()
+    ok_fits = {r["sample_id"] for r in shards.read_table(abl.stage_dir(1, "fit")).to_pylist() if r["status"] == "ok"}
+    jobs = shards.read_table(abl.stage_dir(1, "render")).to_pylist()
+    assert ok_fits and {j["source_id"] for j in jobs if j["view_kind"] == "estimated"} == ok_fits
+    # while the loop's own filter rendered a subset (the bench preset keeps the better half)
+    kept = {r["sample_id"] for r in shards.read_table(layout.stage_dir(1, "filter")).to_pylist() if r.get("kept")}
+    loop_jobs = shards.read_table(layout.stage_dir(1, "render")).to_pylist()
+    assert kept and {j["source_id"] for j in loop_jobs if j["view_kind"] == "estimated"} == kept
+    assert figures["mcd_no_pseudo_label_filter_iter0"] == figures["mcd_loop_iter0"]  # same Φ₀, same test split
+    assert (abl.stage_dir(1, "train") / "predictor.pt").is_file()
+    saved = json.loads((out / "fidelity.json").read_text())
+    assert saved["mcd_loop_iter1"] == figures["mcd_loop_iter1"] and "headroom" in saved["notes"]
+    assert (out / "fidelity.png").stat().st_size > 5000
+
+
+def test_a_rerun_resumes_without_training_again(bench_run, catalog):
+    figures, out = bench_run
+    layout = RunLayout(catalog / "runs", "toy", "bt")
+    ckpt = layout.root / "fidelity" / "control" / "round-01" / "train" / "predictor.pt"
+    before = ckpt.stat().st_mtime_ns
+    again = B.main([*ARGS, "--results-dir", str(out / "again")])
+    assert ckpt.stat().st_mtime_ns == before
+    for key in ("mcd_loop_iter1", "mcd_control_iter1", "mcd_oracle_iter1"):
+        assert again[key] == figures[key]
+
+
+def test_gap_recovered_and_ablation_ordering():
+    assert B.gap_recovered(10.0, 6.0, 8.0) == pytest.approx(0.5)
+    assert B.gap_recovered(10.0, 6.0, 11.0) == pytest.approx(-0.25)
+    assert math.isnan(B.gap_recovered(10.0, 10.5, 9.0))  # no gap: the oracle is no better than the control
+    assert B.ablation_ordering(5.0, 6.0, 7.0).startswith("holds")
+    assert B.ablation_ordering(5.0, 7.0, 6.0).startswith("does not hold")
+    assert B.ablation_ordering(5.0, None, 7.0).startswith("not measured")
+
+
+def test_a_missing_init_predictor_is_refused_before_anything_runs(prefect_harness, catalog, tmp_path):
+    from flows.bootstrap import bootstrap
+
+    with pytest.raises(FileNotFoundError, match="init_predictor: .*nope.pt is not a file"):
+        bootstrap(category="toy", preset="tiny", run_name="noinit", init_predictor=str(tmp_path / "nope.pt"))
+    assert not (catalog / "runs" / "toy" / "noinit" / "manifest.json").exists()
+
+
+def test_training_publishes_its_progress_on_the_dashboard(bench_run):
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterType
+
+    with get_client(sync_client=True) as client:
+        artifacts = client.read_artifacts(artifact_filter=ArtifactFilter(type=ArtifactFilterType(any_=["progress"])))
+    training = [a for a in artifacts if (a.description or "").startswith("training ")]
+    assert training, "no training progress artifact"
+    assert all(float(a.data) == 100.0 for a in training)  # every train task of the run finished
+    assert any("iter-01/train" in a.description and "steps/s" in a.description for a in training)
+
+
+def test_verdicts_follow_the_recorded_figures():
+    figs = {"iterations": 2, "mcd_loop_iter2": 7.0, "mcd_control_iter2": 10.0, "mcd_oracle_iter2": 6.0}
+    lines = B.verdict_lines(figs)
+    assert "0.600 (goal <= 0.75: met" in lines[0] and "recovers 75% of" in lines[1] and "(goal >= 50%: met)" in lines[1]
+    assert lines[2] == "paper's ablation ordering not measured (run with --ablations)"
+    figs.update({"mcd_no_view_augmentation_iter2": 8.0, "mcd_no_fitting_regularisation_iter2": 9.0})
+    assert B.verdict_lines(figs)[2].startswith("paper's ablation ordering holds")
+    # no headroom: the share of a 0.03 cm gap is not reported as a figure of merit
+    flat = B.verdict_lines({"iterations": 2, "mcd_loop_iter2": 11.07, "mcd_control_iter2": 10.40,
+                            "mcd_oracle_iter2": 10.37})
+    assert "NOT met" in flat[0] and "not meaningful" in flat[1] and "0.67 cm behind the control" in flat[1]
