@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping
 
+from prefect.logging import get_run_logger
+
 from bat3r_core import datasets, shards
 from bat3r_core.config_utils import from_mapping
 from bat3r_core.render import runner
@@ -35,9 +37,14 @@ def render_shard(jobs_file: str, index: int, out_dir: str, config: Mapping[str, 
     cfg = from_mapping(RenderConfig, config["render"], "render")
     assets = from_mapping(SceneAssets, config["assets"], "assets")
     jobs = read_jobs(jobs_file)
+    logger = get_run_logger()
+
+    def progress(p: Mapping[str, Any]) -> None:  # long shards show they advance in the task's log
+        logger.info("rendered %d/%d images (%.1f images/s)", p["done"], p["total"], p["images_per_s"])
+
     with gpu_slot() as device:
         result = runner.render_shard(jobs, assets, out_dir, index, cfg,
-                                     gpu_index=device if cfg.device != "CPU" else None)
+                                     gpu_index=device if cfg.device != "CPU" else None, progress=progress)
     record = shard_record("render", index, shards.shard_paths(out_dir, index))
     record.update(processes=result.processes, crashes=result.crashes, seconds=round(result.seconds, 3))
     return record

@@ -13,6 +13,7 @@ docs/CONVENTIONS.md.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -33,6 +34,15 @@ __all__ = ["ShardResult", "render_shard", "render_jobs", "render_command", "conv
            "posed_vertices", "mask_iou"]
 
 _PROJECT_ROOT = Path(__file__).resolve().parents[2]
+PROGRESS_INTERVAL_S = 30.0
+"""Seconds between two progress reports of a shard being rendered (images done, images per second)."""
+
+_logger = logging.getLogger(__name__)
+
+
+def _log_progress(progress: dict) -> None:
+    _logger.info("rendering %s: %d/%d images done (%.1f images/s)", progress["shard"], progress["done"],
+                 progress["total"], progress["images_per_s"])
 
 
 @dataclass(frozen=True)
@@ -102,8 +112,8 @@ def _tail(path: Path, n: int = 1500) -> str:
 
 
 def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir: Path, log_path: Path,
-                 config: RenderConfig, env: dict, on_worker_start: Callable[[subprocess.Popen], None] | None
-                 ) -> tuple[int, bool, bool]:
+                 config: RenderConfig, env: dict, on_worker_start: Callable[[subprocess.Popen], None] | None,
+                 on_results: Callable[[int], None] | None = None) -> tuple[int, bool, bool]:
     """One worker process over ``rows``; returns (exit code, killed for lack of progress, start-up succeeded)."""
     cmd = [sys.executable, "-m", "bat3r_core.render.worker", "--spec", str(spec_path), "--results",
            str(results_path), "--out", str(workdir)]
@@ -133,9 +143,12 @@ def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir:
             time.sleep(0.05)
             if not ready and ready_file.exists():
                 ready, last_progress = True, time.monotonic()
-            now_done = len(wanted & set(_read_results(results_path)))
+            results = _read_results(results_path)
+            now_done = len(wanted & set(results))
             if now_done != done:
                 done, last_progress = now_done, time.monotonic()
+                if on_results is not None:
+                    on_results(len(results))
             limit = config.timeout_s if ready else config.startup_timeout_s
             if time.monotonic() - last_progress > limit:
                 proc.kill()
@@ -147,9 +160,23 @@ def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir:
 
 def _render_images(jobs: Sequence[RenderJob], posed: Sequence[np.ndarray | None], assets: SceneAssets,
                    config: RenderConfig, workdir: Path, debug_vertices: bool, gpu_index: int | None,
-                   on_worker_start: Callable[[subprocess.Popen], None] | None) -> tuple[dict[int, dict], int, int]:
+                   on_worker_start: Callable[[subprocess.Popen], None] | None,
+                   progress: Callable[[dict], None] | None = None, progress_interval_s: float = PROGRESS_INTERVAL_S,
+                   shard: str = "") -> tuple[dict[int, dict], int, int]:
     """Render all jobs into ``workdir`` (``posed[i]``: job i's skinned vertices, None when it cannot be posed);
-    returns (results by job index, processes started, crashes)."""
+    returns (results by job index, processes started, crashes). ``progress`` is called every
+    ``progress_interval_s`` seconds while images finish, and once all are done, with ``{"shard", "done", "total",
+    "images_per_s"}``."""
+    t_start = time.monotonic()
+    last_report = [t_start]
+
+    def on_results(n_done: int) -> None:
+        now = time.monotonic()
+        if progress is not None and (now - last_report[0] >= progress_interval_s or n_done == len(jobs)):
+            last_report[0] = now
+            progress({"shard": shard, "done": n_done, "total": len(jobs),
+                      "images_per_s": n_done / max(now - t_start, 1e-9)})
+
     spec_path = workdir / "spec.json"
     spec_path.write_text(json.dumps({"asset": str(assets.asset), "textures": list(assets.textures),
                                      "envmaps": list(assets.envmaps), "config": to_mapping(config),
@@ -173,7 +200,7 @@ def _render_images(jobs: Sequence[RenderJob], posed: Sequence[np.ndarray | None]
         batch = pending[:config.recycle_every]
         processes += 1
         rc, killed, ready = _run_process([rows[i] for i in batch], spec_path, results_path, workdir, log_path, config,
-                                  env, on_worker_start)
+                                         env, on_worker_start, on_results)
         results = _read_results(results_path)
         pending = [i for i in pending if i not in results and i not in failed]
         unfinished = [i for i in batch if i not in results and i not in failed]
@@ -238,7 +265,9 @@ def label_job(rig: Rig, job: RenderJob, num_layers: int = 4, posed: np.ndarray |
 def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | os.PathLike, shard_index: int = 0,
                  config: RenderConfig | str | None = None, rig: Rig | None = None, debug_vertices: bool = False,
                  gpu_index: int | None = None, min_mask_iou: float = 0.8,
-                 on_worker_start: Callable[[subprocess.Popen], None] | None = None) -> ShardResult:
+                 on_worker_start: Callable[[subprocess.Popen], None] | None = None,
+                 progress: Callable[[dict], None] | None = _log_progress,
+                 progress_interval_s: float = PROGRESS_INTERVAL_S) -> ShardResult:
     """Render ``jobs`` and write training shard ``part-<shard_index>`` into ``out_dir``.
 
     Args:
@@ -252,6 +281,9 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
         min_mask_iou: rows whose Blender mask and ray-cast layer-0 occupancy agree less than this (IoU, for masks
             of at least 50 pixels) get status ``mask_mismatch``.
         on_worker_start: called with each worker ``Popen`` right after it starts (monitoring, fault injection).
+        progress: called every ``progress_interval_s`` seconds while images finish and once when the last one
+            has, with ``{"shard", "done", "total", "images_per_s"}`` (default: an INFO line on this module's
+            logger); None reports nothing.
 
     Returns:
         :class:`ShardResult`. The npz holds ``rgb (N, H, W, 3) uint8``, ``mask (N, H, W) bool``,
@@ -293,7 +325,8 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
         ok = not job.problems(rig.num_joints)
         posed.append(posed_vertices(rig, job) if ok else None)  # a bad job is reported by the worker
     results, processes, crashes = _render_images(jobs, posed, assets, config, workdir, debug_vertices, gpu_index,
-                                                 on_worker_start)
+                                                 on_worker_start, progress, progress_interval_s,
+                                                 shard=str(out_dir / shard_name(shard_index)))
     n, k = len(jobs), config.num_layers
     # float16 labels when the rig is small enough for sub-millimetre round trips, float32 otherwise
     label_dtype = storage_dtype(rig.rest_vertices, max((abs(j.global_scale) for j in jobs), default=1.0))

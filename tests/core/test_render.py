@@ -183,9 +183,22 @@ def mixed_shard(tmp_path_factory, toy_rig, toy_glb):
         _job(toy_rig, "good_envmap", theta, 32, azimuth=100.0, texture_id=1, envmap_id=0, envmap_rotation=1.0),
         _job(toy_rig, "missing_envmap", theta, 32, envmap_id=3),
     ]
-    result = render_shard(jobs, assets, d / "out", 0, TINY, rig=toy_rig, debug_vertices=True)
+    result = render_shard(jobs, assets, d / "out", 0, TINY, rig=toy_rig, debug_vertices=True,
+                          progress=_PROGRESS.append, progress_interval_s=0.0)
     table, arrays = read_shard(d / "out", 0)
     return jobs, result, table, arrays
+
+
+_PROGRESS: list[dict] = []  # the mixed shard's progress reports
+
+
+@pytest.mark.blender
+def test_a_shard_reports_images_done_as_they_finish(mixed_shard):
+    jobs = mixed_shard[0]
+    done = [p["done"] for p in _PROGRESS]
+    assert done and done == sorted(set(done)) and done[-1] == len(jobs)  # every job answered, good or bad
+    assert all(p["total"] == len(jobs) and p["images_per_s"] > 0 for p in _PROGRESS)
+    assert _PROGRESS[-1]["shard"].endswith("part-00000")
 
 
 @pytest.mark.blender
