@@ -34,7 +34,7 @@ from _results import record  # noqa: E402
 
 from bat3r_core.datasets import canonical_jobs  # noqa: E402
 from bat3r_core.render.config import RenderConfig, SceneAssets  # noqa: E402
-from bat3r_core.render.runner import _render_images  # noqa: E402
+from bat3r_core.render.runner import _render_images, posed_vertices  # noqa: E402
 from bat3r_core.rig_io import save_rig_glb  # noqa: E402
 from bat3r_core.toy import TOY_BODY_FRAME, TOY_COATS, build_toy_rig  # noqa: E402
 
@@ -44,11 +44,13 @@ def _children_cpu() -> float:
     return u.ru_utime + u.ru_stime
 
 
-def _render(jobs, assets, config, root: Path) -> tuple[list[dict], float, int, float]:
-    """Render in worker processes; returns (records, wall s, processes, CPU s of the finished workers)."""
+def _render(rig, jobs, assets, config, root: Path) -> tuple[list[dict], float, int, float]:
+    """Render in worker processes (the skinned vertices computed first, as ``render_shard`` does, outside the
+    timing); returns (records, wall s, processes, CPU s of the finished workers)."""
     work = Path(tempfile.mkdtemp(dir=root))
+    posed = [posed_vertices(rig, job) for job in jobs]
     t0, c0 = time.perf_counter(), _children_cpu()
-    results, processes, crashes = _render_images(jobs, assets, config, work, False, None, None)
+    results, processes, crashes = _render_images(jobs, posed, assets, config, work, False, None, None, progress=None)
     wall, cpu = time.perf_counter() - t0, _children_cpu() - c0
     if crashes or any(results[i]["status"] != "ok" for i in range(len(jobs))):
         raise RuntimeError(f"benchmark renders failed: {[results[i] for i in range(len(jobs))][:3]}")
@@ -78,7 +80,7 @@ def main() -> None:
             jobs = canonical_jobs(rig, args.throughput_jobs, seed=1, body_frame_spec=TOY_BODY_FRAME,
                                   resolution=size, num_textures=len(TOY_COATS))
             cfg = RenderConfig(resolution=size, samples=16, denoise=denoise)
-            recs, wall, _, _ = _render(jobs, assets, cfg, root)
+            recs, wall, _, _ = _render(rig, jobs, assets, cfg, root)
             ips, ips_cpu = _throughput(recs)
             figures[f"images_per_s_{key}"] = round(ips, 3)
             figures[f"images_per_s_{key}_from_cpu_time"] = round(ips_cpu, 3)
@@ -89,8 +91,8 @@ def main() -> None:
         jobs = canonical_jobs(rig, args.jobs, seed=2, body_frame_spec=TOY_BODY_FRAME, resolution=128,
                               num_textures=len(TOY_COATS))
         cfg = RenderConfig(resolution=128, samples=16)
-        _, shard_s, p1, shard_cpu = _render(jobs, assets, replace(cfg, recycle_every=args.jobs), root)
-        _, image_s, p2, image_cpu = _render(jobs, assets, replace(cfg, recycle_every=1), root)
+        _, shard_s, p1, shard_cpu = _render(rig, jobs, assets, replace(cfg, recycle_every=args.jobs), root)
+        _, image_s, p2, image_cpu = _render(rig, jobs, assets, replace(cfg, recycle_every=1), root)
         if (p1, p2) != (1, args.jobs):
             raise RuntimeError(f"expected 1 and {args.jobs} worker processes, got {p1} and {p2}")
         figures.update(per_shard_s=round(shard_s, 2), per_image_s=round(image_s, 2),
