@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
 import sys
 from pathlib import Path
 
@@ -28,20 +26,6 @@ BENCH_TINY = {"run.canonical_samples": 8, "run.collection_size": 8, "run.test_si
 ARGS = ["--preset", "bench", "--run-name", "bt", "--iterations", "1",
         *[f"--set={k}={json.dumps(v)}" for k, v in BENCH_TINY.items()]]
 
-
-@pytest.fixture(scope="module")
-def catalog(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("catalog")
-    shutil.copy(ROOT / "data_catalog.yaml", folder / "data_catalog.yaml")
-    old = {k: os.environ.get(k) for k in ("BAT3R_CATALOG", "BAT3R_STORAGE_ROOT")}
-    os.environ["BAT3R_CATALOG"] = str(folder / "data_catalog.yaml")
-    os.environ.pop("BAT3R_STORAGE_ROOT", None)
-    yield folder
-    for k, v in old.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
 
 
 @pytest.fixture(scope="module")

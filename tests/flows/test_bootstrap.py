@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -25,21 +24,6 @@ TINY = {"run.canonical_samples": 8, "run.collection_size": 4, "run.test_size": 4
         "shard_size": 4}
 CLI_TINY = [f"--set={k}={v}" for k, v in TINY.items()]
 
-
-@pytest.fixture(scope="module")
-def catalog(tmp_path_factory):
-    """A copy of the data catalog in a tmp folder: runs, collections and the toy asset all land there."""
-    folder = tmp_path_factory.mktemp("catalog")
-    shutil.copy(ROOT / "data_catalog.yaml", folder / "data_catalog.yaml")
-    old = {k: os.environ.get(k) for k in ("BAT3R_CATALOG", "BAT3R_STORAGE_ROOT")}
-    os.environ["BAT3R_CATALOG"] = str(folder / "data_catalog.yaml")
-    os.environ.pop("BAT3R_STORAGE_ROOT", None)
-    yield folder
-    for k, v in old.items():
-        if v is None:
-            os.environ.pop(k, None)
-        else:
-            os.environ[k] = v
 
 
 @pytest.fixture(scope="module")
