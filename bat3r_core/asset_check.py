@@ -318,9 +318,9 @@ def check_asset(path: str | os.PathLike, out_dir: str | os.PathLike | None = Non
         _importer_check(report, path, rig, info, scale, up_axis)
     if fit:
         if fitting_config is None:
-            from bat3r_core.fitting.config import preset
+            from bat3r_core.catalog import fitting_preset
 
-            fitting_config = preset("synthetic")
+            fitting_config = fitting_preset("synthetic")
         _fit_check(report, rig, spec, fitting_config, num_poses, seed, out / "geodesics")
     (out / "asset_check.json").write_text(json.dumps({"checks": [c.__dict__ for c in report.checks],
                                                       "figures": report.figures, "body_frame": spec}, indent=1))

@@ -16,14 +16,14 @@ import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Mapping
 
 import yaml
 
 from .config_utils import ConfigError, from_mapping, replace_path
 
 __all__ = ["Catalog", "Category", "RunPreset", "BodyFrameJoints", "CollectionSpec", "load_catalog",
-           "default_catalog_path", "ConfigError", "GENERATED_TOY"]
+           "default_catalog_path", "fitting_preset", "ConfigError", "GENERATED_TOY"]
 
 GENERATED_TOY = "generated:toy"
 """Asset/collection value meaning "generate the embedded toy on first use"."""
@@ -288,6 +288,15 @@ class Catalog:
             data.update(self.category(category).camera_prior)
         return _stage(CameraPriorConfig, data, "camera_prior")
 
+    def fitting_preset(self, name: str, overrides: Mapping[str, Any] | None = None):
+        """The ``FittingConfig`` of ``fitting_presets.<name>`` (``synthetic`` or ``real`` in the shipped catalog: the
+        paper's values) with optional ``overrides`` (field names, e.g. ``{"inlier_distance": 0.05}``), strict."""
+        from .fitting.config import FittingConfig
+
+        if name not in self.fitting_presets:
+            raise ValueError(f"fitting preset must be one of {sorted(self.fitting_presets)}, got {name!r}")
+        return _stage(FittingConfig, {**self.fitting_presets[name], **(overrides or {})}, f"fitting_presets.{name}")
+
     def fitting_config(self, category: str, run: "str | RunPreset | None" = None):
         from .fitting.config import FittingConfig
 
@@ -331,7 +340,7 @@ class Catalog:
         from .render.config import RenderConfig
 
         preset = self.run_preset(run)
-        data = {"resolution": preset.image_size, **preset.render}
+        data = {"resolution": preset.image_size, "num_layers": self.layers, **preset.render}
         return _stage(RenderConfig, data, f"runs.{preset.name}.render")
 
     def pseudo_label_filter_config(self, run: "str | RunPreset"):
@@ -444,6 +453,12 @@ def load_catalog(path: str | os.PathLike | None = None, validate_stages: bool = 
     if validate_stages:
         catalog.validate_stage_sections()
     return catalog
+
+
+def fitting_preset(name: str, overrides: Mapping[str, Any] | None = None,
+                   catalog: str | os.PathLike | None = None):
+    """:meth:`Catalog.fitting_preset` of the catalog file ``catalog`` (default: :func:`default_catalog_path`)."""
+    return load_catalog(catalog, validate_stages=False).fitting_preset(name, overrides)
 
 
 def _check(key: str, value: Any, tp: type) -> Any:

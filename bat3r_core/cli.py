@@ -280,11 +280,11 @@ def _cmd_collection_toy(args: argparse.Namespace) -> int:
 
 
 def _cmd_fit(args: argparse.Namespace) -> int:
-    from .fitting.config import preset
+    from .catalog import fitting_preset
     from .fitting.io import fit_points_file
     from .shards import read_table
 
-    config = preset(args.preset, catalog=args.catalog)
+    config = fitting_preset(args.preset, catalog=args.catalog)
     if args.steps is not None:
         import dataclasses
 

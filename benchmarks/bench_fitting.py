@@ -37,7 +37,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _results import record  # noqa: E402
 
-from bat3r_core.fitting import FittingAsset, PointCloudInstance, fit_batch, preset  # noqa: E402
+from bat3r_core.catalog import fitting_preset as preset  # noqa: E402
+from bat3r_core.fitting import FittingAsset, PointCloudInstance, fit_batch  # noqa: E402
 from bat3r_core.fitting.geodesics import DenseGeodesics, geodesic_distances  # noqa: E402
 from bat3r_core.fitting.io import read_points_npz, write_points_npz  # noqa: E402
 from bat3r_core.fitting.sampling import farthest_point_sampling  # noqa: E402

@@ -185,8 +185,11 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
     train = catalog.train_config(run)
     fitting = catalog.fitting_config(category, run)
     prior = catalog.camera_prior_config(category)
-    features = FeatureConfig(extractor=run.features,
-                             cache_dir=str(catalog.storage() / "_cache" / "features" / category))
+    # the catalog's features section (DINOv2 model, input size, channels, cache folder) with the preset's extractor;
+    # one cache folder per category, so a PCA fitted on one category's renders is never reused for another's
+    features = catalog.feature_config(run)
+    features = dataclasses.replace(features, cache_dir=str(
+        Path(features.cache_dir or catalog.storage() / "_cache" / "features") / category))
     configs = {"render": render, "model": model, "train": train, "features": features, "fitting": fitting,
                "camera_prior": prior, "pseudo_label_filter": catalog.pseudo_label_filter_config(run)}
     for section in configs:

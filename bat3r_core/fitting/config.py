@@ -1,17 +1,14 @@
-"""Configuration of the mesh-fitting stage: one frozen dataclass and the paper's two presets as data.
-
-The data catalog loads a preset (optionally with overrides) through ``config_utils.from_mapping``; the presets
-below hold the values of the paper's supplement and of REFERENCE.md.
+"""Configuration of the mesh-fitting stage: one frozen dataclass. Its presets are data: ``fitting_presets`` of the
+data catalog (the paper's supplement and REFERENCE.md values), loaded by
+``bat3r_core.catalog.fitting_preset(name, overrides)`` (this module does not read the catalog).
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
-from typing import Any, Mapping
 
-from bat3r_core.config_utils import ConfigError, from_mapping
+from bat3r_core.config_utils import ConfigError
 
-__all__ = ["FittingConfig", "preset", "HORSE_LENGTH_M"]
+__all__ = ["FittingConfig", "HORSE_LENGTH_M"]
 
 HORSE_LENGTH_M = 2.7
 """Length (longest rest-pose bounding-box side, metres) of the horse the reference thresholds were set for."""
@@ -150,22 +147,3 @@ class FittingConfig:
         if self.repulsion_reference_length == 0:
             return self.repulsion_geodesic_threshold
         return self.repulsion_geodesic_threshold * float(asset_length) / self.repulsion_reference_length
-
-
-def preset(name: str, overrides: Mapping[str, Any] | None = None,
-           catalog: str | os.PathLike | None = None) -> FittingConfig:
-    """The :class:`FittingConfig` of preset ``name`` (``synthetic`` or ``real``) as the data catalog's
-    ``fitting_presets`` define it (the paper's values in the shipped catalog), with optional ``overrides``
-    (a mapping of field names, e.g. ``{"inlier_distance": 0.05}``), validated strictly.
-
-    Args:
-        catalog: data catalog file (default: :func:`bat3r_core.catalog.default_catalog_path`).
-    """
-    from bat3r_core.catalog import load_catalog
-
-    presets = load_catalog(catalog, validate_stages=False).fitting_presets
-    if name not in presets:
-        raise ValueError(f"preset must be one of {sorted(presets)}, got {name!r}")
-    data = dict(presets[name])
-    data.update(overrides or {})
-    return from_mapping(FittingConfig, data, f"fitting.{name}")

@@ -195,7 +195,7 @@ def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike
     """
     from bat3r_core.config_utils import replace_path
 
-    from .config import preset as make_preset
+    from bat3r_core.catalog import fitting_preset
     from .fit import fit_batch
 
     if isinstance(shard_size, bool) or not isinstance(shard_size, int) or shard_size < 1:
@@ -205,7 +205,7 @@ def fit_points_file(asset_path: str | os.PathLike, points_npz: str | os.PathLike
         for key, value in (overrides or {}).items():
             config = replace_path(config, key, value)
     else:
-        config = make_preset(preset, overrides)
+        config = fitting_preset(preset, overrides)
     instances = read_points_npz(points_npz)
     rig = load_asset_rig(asset_path)
     asset = FittingAsset.prepare(rig, config, cache_dir=cache_dir, device=device)

@@ -19,7 +19,8 @@ from bat3r_core.shards import read_shard
 from bat3r_core.skinning import axis_angle_to_matrix, skin
 from bat3r_core.toy import TOY_BODY_FRAME, build_toy_rig
 from bat3r_core.viewpoints import CameraPriorConfig, body_frame, sample_viewpoints
-from bat3r_core.fitting import FittingAsset, PointCloudInstance, fit_batch, preset
+from bat3r_core.catalog import fitting_preset as preset
+from bat3r_core.fitting import FittingAsset, PointCloudInstance, fit_batch
 from bat3r_core.fitting.camera import recover_camera, recover_translation
 from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.fitting.correspondences import nearest_vertices
@@ -616,7 +617,7 @@ def test_config_validation_and_presets():
     assert s.geodesic_threshold_for(2.7) == pytest.approx(0.5)
     assert s.geodesic_threshold_for(2.361) == pytest.approx(0.5 * 2.361 / 2.7)
     assert preset("real", {"inlier_distance": 0.05}).inlier_distance == 0.05
-    with pytest.raises(ConfigError, match=r"fitting.real: unknown key\(s\) \['stepz'\]"):
+    with pytest.raises(ConfigError, match=r"fitting_presets.real: unknown key\(s\) \['stepz'\]"):
         preset("real", {"stepz": 3})
     with pytest.raises(ValueError, match="preset must be one of"):
         preset("fast")

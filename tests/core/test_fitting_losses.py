@@ -376,7 +376,8 @@ TOLERANCE = {0: {"edge": 0.01, "volume": 0.01, "repulsion": 0.01, "angle": 1e-9}
 def test_gradient_ratios_match_the_full_mesh_reference(gradient_case, max_vertices):
     """|dL_k/dθ| / |dL_data/dθ| of bat3r's objective against the slow full-mesh reference, on the full welded mesh
     (``regulariser_max_vertices: 0``) and on the default proxy."""
-    from bat3r_core.fitting import FittingAsset, preset
+    from bat3r_core.catalog import fitting_preset as preset
+    from bat3r_core.fitting import FittingAsset
 
     case = gradient_case
     config = preset("synthetic", {"regulariser_max_vertices": max_vertices})
