@@ -30,7 +30,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from bat3r_core import shards
+from bat3r_core import shards, stages
 from bat3r_core.cameras import PinholeCamera
 from bat3r_core.metrics import SampleMetrics
 from bat3r_core.shards import atomic_write
@@ -59,7 +59,8 @@ __all__ = [
 
 FAILURE_THRESHOLD_CM = 5.0
 METRICS_FILE = "metrics.parquet"
-EVALUATE_STAGE = "evaluate"
+EVALUATE_STAGE = stages.stage(stages.EVALUATE).folder
+"""The folder of an iteration the per-sample evaluation rows live in (the stage table's ``evaluate``)."""
 _ITER_RE = re.compile(r"^iter-(\d+)$")
 
 SAMPLE_SCHEMA = pa.schema([

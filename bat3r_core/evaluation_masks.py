@@ -32,7 +32,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pyarrow as pa
 
-from bat3r_core import shards
+from bat3r_core import shards, stages
 from bat3r_core.metrics import mask_iou
 
 __all__ = ["COLLECTION_SPLIT", "COLLECTION_SCHEMA", "COLLECTION_METRIC_COLUMNS", "COLLECTION_ROWS_DIR",
@@ -40,9 +40,9 @@ __all__ = ["COLLECTION_SPLIT", "COLLECTION_SCHEMA", "COLLECTION_METRIC_COLUMNS",
            "evaluate_collection_shard", "read_collection_rows", "aggregate_collection"]
 
 COLLECTION_SPLIT = "collection"
-COLLECTION_ROWS_DIR = "collection"
+COLLECTION_ROWS_DIR = stages.stage(stages.EVALUATE_COLLECTION).folder.split("/")[-1]
 """Per-sample rows: ``iter-NN/evaluate/collection/``."""
-COLLECTION_INFER_DIR = "collection_infer"
+COLLECTION_INFER_DIR = stages.stage(stages.COLLECTION_INFER).folder.split("/")[-1]
 """Φ_i's predictions of the collection: ``iter-NN/evaluate/collection_infer/``."""
 MIN_OCCUPANCY = 0.5
 """Occupancy threshold, as in ``bat3r_core.predictor.infer.MIN_OCCUPANCY``."""

@@ -39,7 +39,7 @@ from matplotlib.collections import PolyCollection
 from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 
-from bat3r_core import analysis, evaluation, evaluation_masks, shards
+from bat3r_core import analysis, evaluation, evaluation_masks, shards, stages
 from bat3r_core.shards import atomic_write_bytes
 
 __all__ = ["SECTION_IDS", "QUALITATIVE_FILE", "QualitativeInputs", "write_report_inputs", "read_report_inputs",
@@ -47,7 +47,7 @@ __all__ = ["SECTION_IDS", "QUALITATIVE_FILE", "QualitativeInputs", "write_report
 
 REPORT_FILE = "report.html"
 QUALITATIVE_FILE = "qualitative.npz"
-FIT_STAGE = "fit"
+FIT_STAGE = stages.stage(stages.FIT).folder
 SECTION_IDS = ("summary", "metrics-over-iterations", "ablation-table", "collection-masks", "per-cluster",
                "failure-rates",
                "camera-distribution", "angle-fits", "pseudo-labels", "qualitative")

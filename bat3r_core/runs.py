@@ -33,7 +33,7 @@ from typing import Any, Iterable, Mapping
 
 import pyarrow.parquet as pq
 
-from bat3r_core import shards
+from bat3r_core import shards, stages
 
 __all__ = ["ITERATION_STAGES", "RUN_STAGES", "RunLayout", "code_version", "stage_code_version", "write_manifest",
            "read_manifest", "shard_record", "ShardFailure", "FailureSummary", "TooManyFailedShards",
@@ -42,10 +42,10 @@ __all__ = ["ITERATION_STAGES", "RUN_STAGES", "RunLayout", "code_version", "stage
            "training_need",
            "TooFewSamples", "require_samples"]
 
-ITERATION_STAGES = ("infer", "fit", "filter", "plan", "render", "features", "train", "test_infer", "evaluate")
-"""Stage folders inside ``iter-NN/``, in data-flow order."""
-RUN_STAGES = ("collection", "test")
-"""Run-level stage folders (not tied to an iteration)."""
+ITERATION_STAGES = stages.iteration_folders()
+"""Stage folders inside ``iter-NN/``, in the order of their first writer in the stage table (``bat3r_core.stages``)."""
+RUN_STAGES = stages.run_folders()
+"""Run-level stage folders (not tied to an iteration; from the stage table)."""
 
 MANIFEST_FILE = "manifest.json"
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
@@ -425,12 +425,8 @@ DROP_HINTS = {
 """What to do about the most frequent drop status; ``{category}``, ``{asset}`` (the category's asset file) and
 ``{catalog}`` (`` --catalog PATH`` or empty) are filled in by :func:`require_samples`."""
 
-STAGE_NOUNS = {"collection": "images", "test": "images", "collection-images": "renders", "test-images": "renders",
-               "generated_collection": "renders",
-               "render": "renders", "features": "feature rows", "infer": "predictions",
-               "test_infer": "predictions", "fit": "fits", "filter": "fits", "plan": "render jobs",
-               "evaluate": "evaluation rows"}
-"""What a stage's samples are called in reports (default ``samples``)."""
+STAGE_NOUNS = {s.name: s.noun for s in stages.STAGES}
+"""What a stage's samples are called in reports (the stage table's ``Stage.noun``; default ``samples``)."""
 
 
 @dataclass(frozen=True)

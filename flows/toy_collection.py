@@ -23,6 +23,7 @@ from prefect import flow
 from bat3r_core.config_utils import to_mapping
 from bat3r_core.predictor.collection import CollectionConfig, list_collection, plan_shards
 from bat3r_core.runs import SampleNeed, require_samples, summarize_drops
+from bat3r_core.stages import GENERATED_COLLECTION
 from flows._fanout import StageResult, artifact_key, run_stage
 from flows._settings import RunSettings, resolve_run
 from tasks._cache import for_run
@@ -54,7 +55,7 @@ def prepare_split(settings: RunSettings, split: str, spec: dict[str, Any],
         cfg = {"n": spec["n"], "seed": spec["seed"], "resolution": settings.image_size,
                "render": to_mapping(settings.render), "ground_truth_dir": spec["ground_truth"],
                **{k: spec[k] for k in _GENERATED_KEYS if k in spec}}
-        check(run_stage(f"{split}-images", for_run(render_generated_collection, layout),
+        check(run_stage(GENERATED_COLLECTION, for_run(render_generated_collection, layout),
                         [{"out_dir": str(folder), "config": cfg}],
                         progress_key=artifact_key(layout.category, layout.run_name, split, "images"),
                         max_failed_fraction=0.0, label=f"{split} images"))

@@ -4,7 +4,8 @@ A stage task's cache key is a SHA-256 over
 
 * the content of its input files (``bat3r_core.shards.content_hash``: names and bytes, in order),
 * its stage config (``config_utils.to_mapping`` → canonical JSON),
-* the code version of the ``bat3r_core`` module it calls (``bat3r_core.runs.stage_code_version``),
+* the code version of the ``bat3r_core`` module the stage table names for it (``bat3r_core.stages.STAGES``,
+  ``bat3r_core.runs.stage_code_version``),
 * the resolved OUTPUT location: a cache hit does not re-create files, so the same inputs written to another run or
   shard index must recompute.
 
@@ -23,7 +24,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 from prefect import Task, task
 from prefect.tasks import exponential_backoff
 
-from bat3r_core import shards
+from bat3r_core import shards, stages
 from bat3r_core.config_utils import to_mapping
 from bat3r_core.runs import RunLayout, stage_code_version
 
@@ -90,17 +91,23 @@ def record_is_intact(record: Mapping[str, Any]) -> bool:
     return shards.content_hash(files) == record.get("content_hash")
 
 
-def stage_task(stage: str, module: str, *, inputs: Callable[[Mapping[str, Any]], Sequence[os.PathLike]],
+def stage_task(stage: str, *, inputs: Callable[[Mapping[str, Any]], Sequence[os.PathLike]],
                output: Callable[[Mapping[str, Any]], os.PathLike], config_param: str = "config",
                retries: int = 0, gpu: bool = False, **task_kwargs: Any) -> Callable[[Callable], Task]:
-    """Decorator: a Prefect task for one stage, cached by ``stage_cache_key``.
+    """Decorator: the Prefect task of stage ``stage`` of ``bat3r_core.stages.STAGES``, cached by
+    ``stage_cache_key`` with the code version of the module the table names for it. A name that is not a stage of
+    the table, or one that runs another stage's task (``Stage.task_stage``), is refused at import.
 
     inputs / output: map the task's bound parameters to its input files and its output location.
     config_param: the parameter holding the stage config. retries: retried with exponential back-off
     (``RETRY_BACKOFF_FACTOR``·2^k seconds, 20 % jitter) — for rendering, I/O and inference. gpu: tag the task
     ``GPU_TAG``. Results persist as JSON (``result_serializer="json"``).
     """
-    version = stage_code_version(module)
+    entry = stages.stage(stage)
+    if entry.own_task != stage:
+        raise ValueError(f"stage {stage!r} runs the task of stage {entry.own_task!r} (bat3r_core.stages.STAGES): "
+                         "it has no task of its own")
+    version = stage_code_version(entry.module)
 
     def key_fn(context: Any, parameters: Mapping[str, Any]) -> str:
         return stage_cache_key(stage, version, inputs(parameters), parameters.get(config_param), output(parameters))

@@ -29,7 +29,7 @@ def _metrics_file(run_dir: str) -> Path:
     return Path(run_dir) / "metrics.parquet"
 
 
-@stage_task("metrics", "bat3r_core.evaluation", inputs=lambda p: evaluation_inputs(p["run_dir"]),
+@stage_task("metrics", inputs=lambda p: evaluation_inputs(p["run_dir"]),
             output=lambda p: _metrics_file(p["run_dir"]))
 def update_metrics(run_dir: str, config: dict | None = None) -> dict:
     """Recompute ``run_dir/metrics.parquet`` from every ``iter-NN/evaluate`` shard
@@ -55,7 +55,7 @@ def _shard_inputs(p: dict) -> list[Path]:
         shard_input_files(p["predictions_dir"], p["index"]) + [clouds_path(p["predictions_dir"], p["index"])]
 
 
-@stage_task("evaluate", "bat3r_core.evaluation", inputs=_shard_inputs,
+@stage_task("evaluate", inputs=_shard_inputs,
             output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
             task_run_name="evaluate-{index}")
 def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: dict) -> dict:
@@ -73,8 +73,7 @@ def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: dict)
     return shard_record("evaluate", index, paths)
 
 
-@stage_task("pseudo_labels", "bat3r_core.evaluation",
-            inputs=lambda p: [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"])]
+@stage_task("pseudo_labels", inputs=lambda p: [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"])]
             + [f for i in shards.list_shards(p["fit_dir"]) for f in shard_input_files(p["fit_dir"], i)],
             output=lambda p: Path(p["out_dir"]) / evaluation.PSEUDO_LABEL_FILE, retries=1)
 def pseudo_label_quality(fit_dir: str, out_dir: str, config: dict) -> dict:
@@ -97,7 +96,7 @@ def _collection_inputs(p: dict) -> list[Path]:
     return files
 
 
-@stage_task("evaluate_collection", "bat3r_core.evaluation_masks", inputs=_collection_inputs,
+@stage_task("evaluate_collection", inputs=_collection_inputs,
             output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
             task_run_name="evaluate-collection-{index}")
 def evaluate_collection_shard(predictions_dir: str, index: int, collection_dir: str, fit_dir: str | None,

@@ -28,7 +28,7 @@ def _inputs(p: Mapping[str, Any]) -> list[Path]:
         [clouds_path(p["predictions_dir"], i) for i in shards.list_shards(p["fit_dir"])]
 
 
-@stage_task("filter", "bat3r_core.pseudo_labels", inputs=_inputs, output=lambda p: Path(p["out_dir"]))
+@stage_task("filter", inputs=_inputs, output=lambda p: Path(p["out_dir"]))
 def filter_pseudo_labels(asset: str, fit_dir: str, predictions_dir: str, out_dir: str,
                          config: Mapping[str, Any]) -> dict:
     """Quality columns of every fit of ``fit_dir`` (``pseudo_labels.quality_rows``; the canonical points come from
@@ -78,7 +78,7 @@ def _check_inputs(p: Mapping[str, Any]) -> list[Path]:
         _fit_files(p["fit_dir"]) + _fit_files(p["filter_dir"])
 
 
-@stage_task("filter_check", "bat3r_core.pseudo_labels", inputs=_check_inputs,
+@stage_task("filter_check", inputs=_check_inputs,
             output=lambda p: Path(p["out_dir"]) / PRECISION_FILE)
 def filter_precision_check(fit_dir: str, filter_dir: str, errors_file: str, out_dir: str,
                            config: Mapping[str, Any]) -> dict:

@@ -34,7 +34,7 @@ def _inputs(p: Mapping[str, Any]) -> list[Path]:
         [clouds_path(p["predictions_dir"], p["index"])]
 
 
-@stage_task("fit", "bat3r_core.fitting.fit", inputs=_inputs,
+@stage_task("fit", inputs=_inputs,
             output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1, gpu=True,
             task_run_name="fit-{index}")
 def fit_shard(asset: str, predictions_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:

@@ -22,7 +22,7 @@ __all__ = ["plan_sampled_jobs", "plan_views_shard"]
 _BUILDERS = {"canonical": datasets.canonical_jobs, "random_pose": datasets.random_pose_jobs}
 
 
-@stage_task("plan", "bat3r_core.datasets", inputs=lambda p: [Path(p["asset"])], output=lambda p: Path(p["out_dir"]))
+@stage_task("plan", inputs=lambda p: [Path(p["asset"])], output=lambda p: Path(p["out_dir"]))
 def plan_sampled_jobs(asset: str, out_dir: str, config: Mapping[str, Any]) -> dict:
     """Sample render jobs around the rig of ``asset`` and write them to ``out_dir/part-NNNNN.parquet``.
 
@@ -54,7 +54,7 @@ def _views_inputs(p: Mapping[str, Any]) -> list[Path]:
     return files
 
 
-@stage_task("plan", "bat3r_core.fitting.augment", inputs=_views_inputs,
+@stage_task("plan_views", inputs=_views_inputs,
             output=lambda p: Path(p["out_dir"]) / f"{shards.shard_name(p['index'])}.parquet",
             task_run_name="plan-{index}")
 def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config: Mapping[str, Any],
@@ -77,7 +77,7 @@ def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config:
     jobs = plan_views_for_fits(load_rig(asset), rows, dict(config["body_frame"]), augment,
                                seed=_shard_seed(int(config["seed"]), index))
     path = write_jobs(jobs, Path(out_dir) / f"{shards.shard_name(index)}.parquet")
-    return {"stage": "plan", "index": index, "files": [str(path)], "content_hash": shards.content_hash([path]),
+    return {"stage": "plan_views", "index": index, "files": [str(path)], "content_hash": shards.content_hash([path]),
             "n_jobs": len(jobs), "n_fits": len(rows), "n_kept": sum(r["status"] == shards.STATUS_OK for r in rows)}
 
 

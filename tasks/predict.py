@@ -20,7 +20,7 @@ def _sample_files(samples: Sequence[Mapping[str, str]]) -> list[Path]:
     return [Path(s[k]) for s in samples for k in ("image_path", "mask_path") if s.get(k)]
 
 
-@stage_task("collection", "bat3r_core.predictor.collection", inputs=lambda p: _sample_files(p["samples"]),
+@stage_task("collection", inputs=lambda p: _sample_files(p["samples"]),
             output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=2,
             task_run_name="collection-{index}")
 def ingest_collection_shard(samples: list[dict], index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
@@ -34,8 +34,7 @@ def ingest_collection_shard(samples: list[dict], index: int, out_dir: str, confi
     return shard_record("collection", index, paths)
 
 
-@stage_task("infer", "bat3r_core.predictor.infer",
-            inputs=lambda p: [Path(p["predictor"])] + shard_input_files(p["collection_dir"], p["index"]),
+@stage_task("infer", inputs=lambda p: [Path(p["predictor"])] + shard_input_files(p["collection_dir"], p["index"]),
             output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=2, gpu=True,
             task_run_name="infer-{index}")
 def infer_shard(predictor: str, collection_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:

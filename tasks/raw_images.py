@@ -12,8 +12,7 @@ from tasks._cache import shard_input_files, stage_task
 __all__ = ["raw_image_shard"]
 
 
-@stage_task("raw_images", "bat3r_core.datasets",
-            inputs=lambda p: [Path(p["asset"])] + shard_input_files(p["fit_dir"], p["index"])
+@stage_task("raw_images", inputs=lambda p: [Path(p["asset"])] + shard_input_files(p["fit_dir"], p["index"])
             + shard_input_files(p["collection_dir"], p["index"]),
             output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
             task_run_name="raw-images-{index}")

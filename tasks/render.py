@@ -16,7 +16,7 @@ from bat3r_core.runs import shard_record
 from tasks._cache import stage_task
 from tasks._devices import gpu_slot
 
-__all__ = ["render_shard", "render_generated_collection", "render_toy_collection", "asset_files"]
+__all__ = ["render_shard", "render_generated_collection", "asset_files"]
 
 
 def asset_files(assets: Mapping[str, Any]) -> list[Path]:
@@ -25,8 +25,7 @@ def asset_files(assets: Mapping[str, Any]) -> list[Path]:
     return [Path(n) for n in names if n and Path(n).is_file()]
 
 
-@stage_task("render", "bat3r_core.render.runner",
-            inputs=lambda p: [Path(p["jobs_file"])] + asset_files(p["config"]["assets"]),
+@stage_task("render", inputs=lambda p: [Path(p["jobs_file"])] + asset_files(p["config"]["assets"]),
             output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]),
             retries=2, gpu=True, task_run_name="render-{index}")
 def render_shard(jobs_file: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
@@ -56,7 +55,7 @@ def _collection_inputs(config: Mapping[str, Any]) -> list[Path]:
                         "envmaps": config.get("envmaps") or ()})
 
 
-@stage_task("generated_collection", "bat3r_core.datasets", inputs=lambda p: _collection_inputs(p["config"]),
+@stage_task("generated_collection", inputs=lambda p: _collection_inputs(p["config"]),
             output=lambda p: Path(p["out_dir"]), retries=1, task_run_name="generated-collection")
 def render_generated_collection(out_dir: str, config: Mapping[str, Any]) -> dict:
     """A generated image collection in ``out_dir`` (``images/``, ``masks/``) and its hidden ground truth in
@@ -86,7 +85,3 @@ def render_generated_collection(out_dir: str, config: Mapping[str, Any]) -> dict
             "stage": "generated_collection", "images_dir": str(col.images_dir), "masks_dir": str(col.masks_dir),
             "ground_truth_dir": str(col.ground_truth_dir), "n_images": len(col.sample_ids), "reused": col.reused,
             "files": [str(stamp)], "content_hash": shards.content_hash([stamp])}
-
-
-render_toy_collection = render_generated_collection
-"""The former name of :func:`render_generated_collection` (the toy is one generated collection among others)."""

@@ -249,7 +249,7 @@ def test_folder_record_sums_the_shards_of_a_folder(tmp_path):
     assert (rec["n_rows"], rec["n_ok"], rec["n_failed"], rec["n_shards"]) == (5, 3, 2, 2)
     assert rec["failed_samples"][1] == ["c00", "mask_mismatch", _render_rows(["mask_mismatch"])[0]["reason"],
                                         str(p1.parquet)]
-    drops = runs.summarize_drops("collection-images", [rec], "collection images")
+    drops = runs.summarize_drops("generated_collection", [rec], "collection images")
     assert drops.reasons[1].shard == str(p1.parquet) and drops.noun == "renders"
     with pytest.raises(FileNotFoundError, match="no complete shard"):
         runs.folder_record("x", tmp_path / "empty")
