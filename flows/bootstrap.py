@@ -44,11 +44,13 @@ from prefect import flow
 from prefect.artifacts import create_markdown_artifact
 from prefect.logging import get_run_logger
 
-from bat3r_core import shards
+from bat3r_core import shards, stages
+from bat3r_core.stages import (COLLECTION, COLLECTION_INFER, EVALUATE, EVALUATE_COLLECTION, FEATURES, FILTER,
+                               FILTER_CHECK, FIT, INFER, PLAN, PLAN_VIEWS, PSEUDO_LABELS, RAW_IMAGES, RENDER, TEST,
+                               TEST_INFER, TRAIN)
 from bat3r_core.catalog import default_catalog_path
 from bat3r_core.cli import add_bootstrap_arguments, bootstrap_parameters
 from bat3r_core.config_utils import to_mapping
-from bat3r_core.evaluation_masks import COLLECTION_INFER_DIR, COLLECTION_ROWS_DIR
 from bat3r_core.runs import (SampleDrops, SampleNeed, TooFewSamples, TooManyFailedShards, prune_shards,
                              pseudo_label_filter_notes, require_samples, training_need, write_manifest)
 from flows._artifacts import publish_iteration_artifacts
@@ -58,30 +60,8 @@ from flows._settings import Ablations, RunSettings, resolve_run
 from flows.evaluate import evaluate
 from flows.toy_collection import prepare_split
 from tasks._cache import for_run
-from tasks.evaluate import evaluate_collection_shard, evaluate_shard, pseudo_label_quality
-from tasks.features import extract_features_shard
-from tasks.filter import filter_precision_check, filter_pseudo_labels
-from tasks.fit import fit_shard
-from tasks.plan import plan_sampled_jobs, plan_views_shard
-from tasks.predict import infer_shard
-from tasks.raw_images import raw_image_shard
-from tasks.render import render_shard
-from tasks.train import train_model
 
-__all__ = ["bootstrap", "canonical_initialisation", "refinement_iteration", "run_bootstrap", "build_parser", "main",
-           "STAGE_MODULES"]
-
-STAGE_MODULES = {
-    "collection": "bat3r_core.predictor.collection", "generated_collection": "bat3r_core.datasets",
-    "plan": "bat3r_core.datasets", "render": "bat3r_core.render.runner",
-    "features": "bat3r_core.predictor.features", "train": "bat3r_core.predictor.train",
-    "infer": "bat3r_core.predictor.infer", "fit": "bat3r_core.fitting.fit", "filter": "bat3r_core.pseudo_labels",
-    "plan_views": "bat3r_core.fitting.augment",
-    "raw_images": "bat3r_core.datasets",
-    "evaluate": "bat3r_core.evaluation", "report": "bat3r_core.report",
-    "evaluate_collection": "bat3r_core.evaluation_masks",
-}
-"""The bat3r_core module each stage runs; their code versions go into ``manifest.json`` and the cache keys."""
+__all__ = ["bootstrap", "canonical_initialisation", "refinement_iteration", "run_bootstrap", "build_parser", "main"]
 
 def _ablations(**switches: bool) -> Ablations:
     return Ablations(**switches)
@@ -110,10 +90,17 @@ def _stage_configs(settings: RunSettings, seed: int) -> dict[str, Any]:
                                    "num_envmaps": len(settings.assets.envmaps),
                                    "augment": not settings.ablations.no_view_augmentation},
                        "body_frame": settings.body_frame, "seed": seed},
+        "pseudo_label_truth": _truth_file(settings.collection),
         "evaluate": None if not gt else {"asset": settings.assets.asset,
                                          "ground_truth": str(Path(gt) / "ground_truth.npz"),
                                          "body_frame": settings.body_frame, "split": "test", "seed": seed},
     }
+
+
+def _truth_file(split: Mapping[str, Any] | None) -> str | None:
+    """The ``ground_truth.npz`` of a split whose hidden truth is on disk (a generated toy collection), else None."""
+    gt = (split or {}).get("ground_truth")
+    return str(Path(gt) / "ground_truth.npz") if gt and (Path(gt) / "ground_truth.npz").is_file() else None
 
 
 def _progress(settings: RunSettings, iteration: int, stage: str) -> str:
@@ -131,9 +118,18 @@ class _Iteration:
         self.stages: list[StageResult] = []
         self.notes: list[str] = []
 
-    def run(self, stage: str, stage_task, calls: list[dict[str, Any]], *, max_failed_fraction: float,
+    def dir(self, stage: str) -> str:
+        """Where ``stage`` (a name of ``bat3r_core.stages.STAGES``) writes in this run and iteration."""
+        return str(stages.output_dir(self.settings.layout.root, stage, self.iteration))
+
+    def ran(self, stage: str) -> bool:
+        return any(r.stage == stage for r in self.stages)
+
+    def run(self, stage: str, calls: list[dict[str, Any]], *, max_failed_fraction: float,
             needs: SampleNeed | None = None) -> StageResult:
+        """Fan ``calls`` out over the task the stage table names for ``stage``."""
         settings = self.settings
+        stage_task = stages.resolve(stages.stage(stage).task)
         try:
             result = run_stage(stage, for_run(stage_task, settings.layout), calls,
                                progress_key=_progress(settings, self.iteration, stage),
@@ -165,56 +161,36 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
     Returns ``{"stages": {stage: [records]}, "states": {stage: [state names]}, "predictor": path, "metrics": rows}``."""
     settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
                            max_failed_fraction=max_failed_fraction)
-    layout, cfg, mff = settings.layout, _stage_configs(settings, seed), settings.max_failed_fraction
+    cfg = _stage_configs(settings, seed)
     it = _Iteration(settings, 0, _data_drops(data_drops))
     if init_predictor is not None:
         get_run_logger().info("iteration 0: Φ_0 from %s (no canonical renders or training)", init_predictor)
         it.notes.append(f"Φ_0 is {init_predictor} (init_predictor): not trained in this run.")
         _evaluate_test(it, cfg, str(init_predictor))
         return _finish_iteration(it, str(init_predictor))
-    need = training_need(settings.train.batch_size)
-
-    plan = it.run("plan", plan_sampled_jobs, [{"asset": settings.assets.asset,
-                                               "out_dir": str(layout.stage_dir(0, "plan")), "config": cfg["plan"]}],
-                  max_failed_fraction=0.0, needs=need)
+    plan = it.run(PLAN, [{"asset": settings.assets.asset, "out_dir": it.dir(PLAN), "config": cfg["plan"]}],
+                  max_failed_fraction=0.0, needs=training_need(settings.train.batch_size))
     job_files = plan.records[0]["files"]
-    keep = range(len(job_files))
-    for stage in ("plan", "render", "features"):  # shards of an earlier, larger plan of this run
-        prune_shards(layout.stage_dir(0, stage), keep)
-
-    render = it.run("render", render_shard,
-                    [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(0, "render")),
-                      "config": cfg["render"]} for i, f in enumerate(job_files)],
-                    max_failed_fraction=mff, needs=need)
-    it.run("features", extract_features_shard,
-           [{"input_dir": str(layout.stage_dir(0, "render")), "index": r["index"],
-             "out_dir": str(layout.stage_dir(0, "features")), "config": cfg["features"]} for r in render.records],
-           max_failed_fraction=mff)
-    train = it.run("train", train_model,
-                   [{"shards_dir": str(layout.stage_dir(0, "render")), "out_dir": str(layout.stage_dir(0, "train")),
-                     "config": cfg["train"]}], max_failed_fraction=0.0)
-    predictor = train.records[0]["predictor"]
-    _evaluate_test(it, cfg, predictor)
-    return _finish_iteration(it, predictor)
+    for stage in (PLAN, RENDER, FEATURES):  # shards of an earlier, larger plan of this run
+        prune_shards(it.dir(stage), range(len(job_files)))
+    _render(it, cfg, list(enumerate(job_files)))
+    return _train_and_evaluate(it, cfg, None)
 
 
 def _evaluate_collection(it: _Iteration, cfg: dict[str, Any], predictor: str) -> None:
     """Φ_iteration on the collection, without 3D ground truth (``bat3r_core.evaluation_masks``): its predictions
     (``iter-ii/evaluate/collection_infer``), then mask IoUs of them and of this iteration's fits (none at 0)."""
-    layout, mff, iteration = it.settings.layout, it.settings.max_failed_fraction, it.iteration
-    collection_dir, evaluate_dir = layout.run_stage_dir("collection"), layout.stage_dir(iteration, "evaluate")
+    mff, collection_dir = it.settings.max_failed_fraction, it.dir(COLLECTION)
     if not shards.list_shards(collection_dir):
         return
-    infer = it.run("collection_infer", infer_shard,
-                   [{"predictor": predictor, "collection_dir": str(collection_dir), "index": i,
-                     "out_dir": str(evaluate_dir / COLLECTION_INFER_DIR), "config": cfg["infer"]}
-                    for i in shards.list_shards(collection_dir)], max_failed_fraction=mff)
-    fit_dir = str(layout.stage_dir(iteration, "fit")) if iteration > 0 else None
-    it.run("evaluate_collection", evaluate_collection_shard,
-           [{"predictions_dir": str(evaluate_dir / COLLECTION_INFER_DIR), "index": r["index"],
-             "collection_dir": str(collection_dir), "fit_dir": fit_dir,
-             "out_dir": str(evaluate_dir / COLLECTION_ROWS_DIR),
-             "config": {"asset": it.settings.assets.asset, "iteration": iteration}} for r in infer.records],
+    infer = it.run(COLLECTION_INFER, [{"predictor": predictor, "collection_dir": collection_dir, "index": i,
+                                       "out_dir": it.dir(COLLECTION_INFER), "config": cfg["infer"]}
+                                      for i in shards.list_shards(collection_dir)], max_failed_fraction=mff)
+    fit_dir = it.dir(FIT) if it.iteration > 0 else None
+    it.run(EVALUATE_COLLECTION,
+           [{"predictions_dir": it.dir(COLLECTION_INFER), "index": r["index"], "collection_dir": collection_dir,
+             "fit_dir": fit_dir, "out_dir": it.dir(EVALUATE_COLLECTION),
+             "config": {"asset": it.settings.assets.asset, "iteration": it.iteration}} for r in infer.records],
            max_failed_fraction=mff)
 
 
@@ -222,26 +198,22 @@ def _evaluate_test(it: _Iteration, cfg: dict[str, Any], predictor: str) -> None:
     """Φ_iteration on the collection (mask IoUs, :func:`_evaluate_collection`) and on the test split: inference
     shards, then per-sample evaluation rows (needs ground truth)."""
     _evaluate_collection(it, cfg, predictor)
-    layout, mff, iteration = it.settings.layout, it.settings.max_failed_fraction, it.iteration
-    test_dir = layout.run_stage_dir("test")
+    mff, test_dir = it.settings.max_failed_fraction, it.dir(TEST)
     if cfg["evaluate"] is None or not shards.list_shards(test_dir):
         return
-    infer = it.run("test_infer", infer_shard,
-                   [{"predictor": predictor, "collection_dir": str(test_dir), "index": i,
-                     "out_dir": str(layout.stage_dir(iteration, "test_infer")), "config": cfg["infer"]}
-                    for i in shards.list_shards(test_dir)], max_failed_fraction=mff)
-    evaluate_cfg = {**cfg["evaluate"], "iteration": iteration}
-    it.run("evaluate", evaluate_shard,
-           [{"predictions_dir": str(layout.stage_dir(iteration, "test_infer")), "index": r["index"],
-             "out_dir": str(layout.stage_dir(iteration, "evaluate")), "config": evaluate_cfg}
-            for r in infer.records], max_failed_fraction=mff)
+    infer = it.run(TEST_INFER, [{"predictor": predictor, "collection_dir": test_dir, "index": i,
+                                 "out_dir": it.dir(TEST_INFER), "config": cfg["infer"]}
+                                for i in shards.list_shards(test_dir)], max_failed_fraction=mff)
+    it.run(EVALUATE, [{"predictions_dir": it.dir(TEST_INFER), "index": r["index"], "out_dir": it.dir(EVALUATE),
+                       "config": {**cfg["evaluate"], "iteration": it.iteration}} for r in infer.records],
+           max_failed_fraction=mff)
 
 
 def _finish_iteration(it: _Iteration, predictor: str) -> dict[str, Any]:
     """metrics.parquet, report.html and the iteration's dashboard artifacts; the subflow's result."""
     layout, stages = it.settings.layout, it.stages
     metrics = evaluate(layout.category, layout.run_name, storage_root=str(layout.storage_root))
-    notes = list(it.notes) + ([] if any(r.stage == "evaluate" for r in stages) else
+    notes = list(it.notes) + ([] if it.ran(EVALUATE) else
                               ["The test split has no ground truth: no per-sample evaluation."])
     publish_iteration_artifacts(layout, it.iteration, stages, metrics["rows"], notes=notes, data_drops=it.data_drops)
     return {"stages": {r.stage: list(r.records) for r in stages},
@@ -259,100 +231,86 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
     iterations' data are discarded, as in the paper). Returns like :func:`canonical_initialisation`."""
     settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
                            max_failed_fraction=max_failed_fraction)
-    layout, cfg, mff = settings.layout, _stage_configs(settings, seed + iteration), settings.max_failed_fraction
+    cfg, mff = _stage_configs(settings, seed + iteration), settings.max_failed_fraction
     it = _Iteration(settings, iteration)
     need = training_need(settings.train.batch_size)
-    collection_dir = layout.run_stage_dir("collection")
-    infer = it.run("infer", infer_shard,
-                   [{"predictor": predictor, "collection_dir": str(collection_dir), "index": i,
-                     "out_dir": str(layout.stage_dir(iteration, "infer")), "config": cfg["infer"]}
-                    for i in shards.list_shards(collection_dir)],
+    infer = it.run(INFER, [{"predictor": predictor, "collection_dir": it.dir(COLLECTION), "index": i,
+                            "out_dir": it.dir(INFER), "config": cfg["infer"]}
+                           for i in shards.list_shards(it.dir(COLLECTION))],
                    max_failed_fraction=mff, needs=SampleNeed(1, "fitting", "one prediction to fit the rig to"))
-    fit = it.run("fit", fit_shard,
-                 [{"asset": settings.assets.asset, "predictions_dir": str(layout.stage_dir(iteration, "infer")),
-                   "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "fit")), "config": cfg["fit"]}
-                  for r in infer.records],
+    fit = it.run(FIT, [{"asset": settings.assets.asset, "predictions_dir": it.dir(INFER), "index": r["index"],
+                        "out_dir": it.dir(FIT), "config": cfg["fit"]} for r in infer.records],
                  max_failed_fraction=mff, needs=SampleNeed(1, "view planning", "one fitted pose to render"))
-    collection_gt = settings.collection.get("ground_truth")
-    if collection_gt and (Path(collection_gt) / "ground_truth.npz").is_file():  # pseudo-label quality (toy)
-        it.run("pseudo_labels", pseudo_label_quality,
-               [{"fit_dir": str(layout.stage_dir(iteration, "fit")),
-                 "out_dir": str(layout.stage_dir(iteration, "evaluate")),
-                 "config": {"asset": settings.assets.asset,
-                            "ground_truth": str(Path(collection_gt) / "ground_truth.npz")}}],
+    truth = cfg["pseudo_label_truth"]
+    if truth is not None:  # pseudo-label quality against the collection's hidden truth (toy)
+        it.run(PSEUDO_LABELS, [{"fit_dir": it.dir(FIT), "out_dir": it.dir(PSEUDO_LABELS),
+                                "config": {"asset": settings.assets.asset, "ground_truth": truth}}],
                max_failed_fraction=1.0)
     filter_dir = None if settings.ablations.no_pseudo_label_filter or settings.ablations.raw_images else \
-        _filter_fits(it, cfg, collection_gt)
+        _filter_fits(it, cfg)
     if settings.ablations.raw_images:  # the raw-image baseline: train on the photos with fitted pseudo-labels
-        it.run("render", raw_image_shard,
-               [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
-                 "collection_dir": str(collection_dir), "index": r["index"],
-                 "out_dir": str(layout.stage_dir(iteration, "render")),
-                 "config": {"layers": settings.layers}} for r in fit.records],
+        it.run(RAW_IMAGES, [{"asset": settings.assets.asset, "fit_dir": it.dir(FIT), "index": r["index"],
+                             "collection_dir": it.dir(COLLECTION), "out_dir": it.dir(RAW_IMAGES),
+                             "config": {"layers": settings.layers}} for r in fit.records],
                max_failed_fraction=mff, needs=need)
         return _train_and_evaluate(it, cfg, predictor)
-    plan = it.run("plan", plan_views_shard,
-                  [{"asset": settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
-                    "index": r["index"], "out_dir": str(layout.stage_dir(iteration, "plan")),
-                    "config": cfg["plan_views"], "filter_dir": filter_dir} for r in fit.records],
-                  max_failed_fraction=mff, needs=need)
+    plan = it.run(PLAN_VIEWS, [{"asset": settings.assets.asset, "fit_dir": it.dir(FIT), "index": r["index"],
+                                "out_dir": it.dir(PLAN_VIEWS), "config": cfg["plan_views"], "filter_dir": filter_dir}
+                               for r in fit.records], max_failed_fraction=mff, needs=need)
     job_files = [(r["index"], r["files"][0]) for r in plan.records if r["n_jobs"] > 0]
-    for stage in ("render", "features"):  # shards of an earlier plan of this run that this plan does not have
-        prune_shards(layout.stage_dir(iteration, stage), [i for i, _ in job_files])
-    it.run("render", render_shard,
-           [{"jobs_file": f, "index": i, "out_dir": str(layout.stage_dir(iteration, "render")),
-             "config": cfg["render"]} for i, f in job_files],
-           max_failed_fraction=mff, needs=need)
+    for stage in (RENDER, FEATURES):  # shards of an earlier plan of this run that this plan does not have
+        prune_shards(it.dir(stage), [i for i, _ in job_files])
+    _render(it, cfg, job_files)
     return _train_and_evaluate(it, cfg, predictor)
 
 
-def _filter_fits(it: _Iteration, cfg: dict[str, Any], collection_gt: str | None) -> str:
+def _render(it: _Iteration, cfg: dict[str, Any], job_files: Sequence[tuple[int, str]]) -> StageResult:
+    """Blender renders of the planned jobs ``(shard index, jobs file)``: the iteration's training shards."""
+    return it.run(RENDER, [{"jobs_file": f, "index": i, "out_dir": it.dir(RENDER), "config": cfg["render"]}
+                           for i, f in job_files],
+                  max_failed_fraction=it.settings.max_failed_fraction,
+                  needs=training_need(it.settings.train.batch_size))
+
+
+def _filter_fits(it: _Iteration, cfg: dict[str, Any]) -> str:
     """The pseudo-label filter over the iteration's fits (``tasks.filter``); with the collection's hidden truth,
     its precision against it. Adds the kept fraction (and the precision) to the iteration's notes; returns the
     filter folder plan views reads."""
-    layout, iteration = it.settings.layout, it.iteration
-    filter_dir = str(layout.stage_dir(iteration, "filter"))
-    result = it.run("filter", filter_pseudo_labels,
-                    [{"asset": it.settings.assets.asset, "fit_dir": str(layout.stage_dir(iteration, "fit")),
-                      "predictions_dir": str(layout.stage_dir(iteration, "infer")), "out_dir": filter_dir,
-                      "config": cfg["filter"]}],
+    settings, iteration = it.settings, it.iteration
+    result = it.run(FILTER, [{"asset": settings.assets.asset, "fit_dir": it.dir(FIT), "predictions_dir": it.dir(INFER),
+                              "out_dir": it.dir(FILTER), "config": cfg["filter"]}],
                     max_failed_fraction=0.0, needs=SampleNeed(1, "view planning", "one kept fit to render"))
-    errors = layout.stage_dir(iteration, "evaluate") / "pseudo_labels.parquet"
+    errors = Path(it.dir(PSEUDO_LABELS)) / "pseudo_labels.parquet"
     check_record = None
-    if collection_gt and any(r.stage == "pseudo_labels" for r in it.stages) and errors.is_file():
-        check = it.run("filter_check", filter_precision_check,
-                       [{"fit_dir": str(layout.stage_dir(iteration, "fit")), "filter_dir": filter_dir,
-                         "errors_file": str(errors), "out_dir": str(layout.stage_dir(iteration, "evaluate")),
-                         "config": {"asset": it.settings.assets.asset,
-                                    "ground_truth": str(Path(collection_gt) / "ground_truth.npz")}}],
+    if it.ran(PSEUDO_LABELS) and errors.is_file():
+        check = it.run(FILTER_CHECK, [{"fit_dir": it.dir(FIT), "filter_dir": it.dir(FILTER), "errors_file": str(errors),
+                                       "out_dir": it.dir(FILTER_CHECK),
+                                       "config": {"asset": settings.assets.asset,
+                                                  "ground_truth": cfg["pseudo_label_truth"]}}],
                        max_failed_fraction=1.0)
         check_record = check.records[0] if check.records else None
     lines = pseudo_label_filter_notes(result.records[0], check_record)
     it.notes += lines
     create_markdown_artifact(markdown="\n".join(f"- {line}" for line in lines),
-                             key=_progress(it.settings, iteration, "pseudo-label-filter"),
+                             key=_progress(settings, iteration, "pseudo-label-filter"),
                              description=f"iteration {iteration}: pseudo-label filter")
-    return filter_dir
+    return it.dir(FILTER)
 
 
-def _train_and_evaluate(it: _Iteration, cfg: dict[str, Any], previous: str) -> dict[str, Any]:
-    """features → train Φ_iteration on the iteration's training shards (from Φ_{iteration-1}'s weights
-    ``previous`` when ``train.warm_start``) → evaluate it on the test split."""
-    settings, iteration = it.settings, it.iteration
-    layout, mff = settings.layout, settings.max_failed_fraction
-    render = it.stages[-1]
-    it.run("features", extract_features_shard,
-           [{"input_dir": str(layout.stage_dir(iteration, "render")), "index": r["index"],
-             "out_dir": str(layout.stage_dir(iteration, "features")), "config": cfg["features"]}
-            for r in render.records], max_failed_fraction=mff)
-    train = it.run("train", train_model,
-                   [{"shards_dir": str(layout.stage_dir(iteration, "render")),
-                     "out_dir": str(layout.stage_dir(iteration, "train")),
-                     "config": {**cfg["train"], "init_from": previous if settings.train.warm_start else None}}],
-                   max_failed_fraction=0.0)
-    new_predictor = train.records[0]["predictor"]
-    _evaluate_test(it, cfg, new_predictor)
-    return _finish_iteration(it, new_predictor)
+def _train_and_evaluate(it: _Iteration, cfg: dict[str, Any], previous: str | None) -> dict[str, Any]:
+    """The tail every iteration shares: features of the iteration's training shards → train Φ_iteration (from
+    Φ_{iteration-1}'s weights ``previous`` when ``train.warm_start``; from scratch at iteration 0) → evaluate it
+    on the collection (masks) and the test split."""
+    settings, mff = it.settings, it.settings.max_failed_fraction
+    training = it.stages[-1]  # render (or raw_images): the training shards
+    it.run(FEATURES, [{"input_dir": it.dir(RENDER), "index": r["index"], "out_dir": it.dir(FEATURES),
+                       "config": cfg["features"]} for r in training.records], max_failed_fraction=mff)
+    init_from = previous if previous is not None and settings.train.warm_start else None
+    train = it.run(TRAIN, [{"shards_dir": it.dir(RENDER), "features_dir": it.dir(FEATURES), "out_dir": it.dir(TRAIN),
+                            "config": {**cfg["train"], "init_from": init_from}}], max_failed_fraction=0.0)
+    predictor = train.records[0]["predictor"]
+    _evaluate_test(it, cfg, predictor)
+    return _finish_iteration(it, predictor)
 
 
 def _bootstrap_run_name() -> str:
@@ -419,7 +377,7 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
                                     "checkpoint, e.g. runs/<category>/<run>/iter-00/train/predictor.pt)")
     write_manifest(layout, {**settings.to_mapping(), "parameters": {
         "iterations": n_iter, "task_runner": task_runner, "seed": seed, "overrides": overrides,
-        "catalog": catalog_file, "init_predictor": init_predictor}}, STAGE_MODULES)
+        "catalog": catalog_file, "init_predictor": init_predictor}}, stages.stage_modules())
     logger.info("run folder %s (catalog %s)", layout.root, catalog_file)
 
     runner = make_task_runner(task_runner)

@@ -12,8 +12,7 @@ from tasks._cache import shard_input_files, stage_task
 __all__ = ["extract_features_shard"]
 
 
-@stage_task("features", "bat3r_core.predictor.features",
-            inputs=lambda p: shard_input_files(p["input_dir"], p["index"]),
+@stage_task("features", inputs=lambda p: shard_input_files(p["input_dir"], p["index"]),
             output=lambda p: Path(p["out_dir"]) / f"part-{p['index']:05d}")
 def extract_features_shard(input_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
     """Features (``bat3r_core.predictor.features.extract_feature_shard``) of shard ``index`` of ``input_dir``

@@ -64,14 +64,18 @@ def dashboard_progress(out_dir: str) -> Callable[[dict[str, Any]], None]:
 
 def _inputs(p: Mapping[str, Any]) -> list[Path]:
     init = p["config"].get("init_from")
-    return training_inputs(p["shards_dir"]) + ([Path(init)] if init else [])
+    features = p.get("features_dir")
+    return training_inputs(p["shards_dir"]) + (training_inputs(features) if features else []) + \
+        ([Path(init)] if init else [])
 
 
-@stage_task("train", "bat3r_core.predictor.train", inputs=_inputs, output=lambda p: Path(p["out_dir"]), retries=1,
+@stage_task("train", inputs=_inputs, output=lambda p: Path(p["out_dir"]), retries=1,
             gpu=True)
-def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dict:
+def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any], features_dir: str | None = None) -> dict:
     """Train the predictor on the training shards of ``shards_dir`` into ``out_dir`` (``predictor.pt``,
     ``checkpoint.pt``, ``train_log.jsonl``). A killed task resumes from ``checkpoint.pt`` on its retry or rerun.
+    features_dir: the features stage's shards of ``shards_dir`` (part of the cache key), streamed as the model's
+    input so no sample's features are computed again; None computes them per batch (``config["features"]``).
 
     config: ``{"model": ModelConfig, "train": TrainConfig, "features": FeatureConfig}`` mappings and, for a warm
     start, ``"init_from"``: the ``predictor.pt`` whose weights initialise the model (part of the cache key).
@@ -79,12 +83,13 @@ def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dic
     ``train_predictor`` has no device argument. Returns ``stage, predictor, files, content_hash, steps,
     final_loss`` (the last logged total loss).
     """
-    _discard_stale_checkpoint(Path(out_dir), shards.content_hash(_inputs({"shards_dir": shards_dir,
-                                                                           "config": config})))
+    _discard_stale_checkpoint(Path(out_dir), shards.content_hash(_inputs({"shards_dir": shards_dir, "config": config,
+                                                                           "features_dir": features_dir})))
     model_cfg = from_mapping(ModelConfig, config["model"], "model")
     train_cfg = from_mapping(TrainConfig, config["train"], "train")
     feature_cfg = from_mapping(FeatureConfig, config["features"], "features")
-    dataset = ShardDataset(shards_dir, make_feature_fn(feature_cfg), cache_shards=train_cfg.shuffle_shards)
+    source = {"features_dir": features_dir} if features_dir else {"feature_fn": make_feature_fn(feature_cfg)}
+    dataset = ShardDataset(shards_dir, cache_shards=train_cfg.shuffle_shards, **source)
     with gpu_slot() as device:
         path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
                                 device=None if device is None else f"cuda:{device}",
@@ -94,4 +99,5 @@ def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any]) -> dic
     last = json.loads(lines[-1]) if lines else {}
     return {"stage": "train", "predictor": str(path), "files": [str(path)],
             "content_hash": shards.content_hash([path]), "steps": train_cfg.steps,
-            "final_loss": last.get("total"), "n_samples": len(dataset)}
+            "final_loss": last.get("total"), "n_samples": len(dataset),
+            "shards_without_features": list(getattr(dataset, "shards_without_features", []))}

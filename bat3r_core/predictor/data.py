@@ -1,9 +1,12 @@
 """Training data of the predictor: a dataset over a folder of rendered training shards.
 
 A shard's npz holds the arrays of ``docs/CONVENTIONS.md`` ("Training samples"); rows whose Parquet ``status`` is
-not ``"ok"`` are skipped. Features are computed per batch by a pluggable ``feature_fn(rgb, mask)``:
-``rgb (N, H, W, 3) uint8``, ``mask (N, H, W) bool`` -> ``(N, C, H, W) float32``. The default, ``rgb_features``, is
-the masked crop scaled to [0, 1] with the background set to 0.
+not ``"ok"`` are skipped. Features come either from the features stage's shards (``features_dir``: shard ``i`` holds
+the feature ``grid (N, C, h, w)`` of training shard ``i``, row for row, ``bat3r_core.predictor.features
+.extract_feature_shard``; ``features.grid_features`` brings a batch to the crop resolution), streamed like the
+training shards so each sample's features are computed once per iteration, or per batch from a pluggable ``feature_fn(rgb, mask)``: ``rgb (N, H, W, 3) uint8``, ``mask (N, H, W)
+bool`` -> ``(N, C, H, W) float32``. The default, ``rgb_features``, is the masked crop scaled to [0, 1] with the
+background set to 0.
 
 Targets are ``canonical_points`` Q, ``posed_points`` P relative to the object depth (``P - (0, 0, object_depth)``
 on occupied entries, 0 elsewhere; this is how shards store P, see ``pointmaps.encode_float16``) and
@@ -58,10 +61,17 @@ class TrainingBatch(NamedTuple):
 class ShardDataset(torch.utils.data.Dataset):
     """Map-style dataset over the complete training shards of ``folder``; item i is a ``TrainingBatch`` of one
     sample without the batch axis. ``get_batch(indices)`` returns a batched ``TrainingBatch`` (one ``feature_fn``
-    call). At most ``cache_shards`` decoded shards are kept in memory."""
+    call, or rows of the feature shards of ``features_dir`` when given: a training shard whose feature shard is
+    missing, because its features task failed and was reported, is left out and listed in
+    ``shards_without_features``). At most ``cache_shards`` decoded shards (with their feature shards) are kept in
+    memory."""
 
-    def __init__(self, folder: str | os.PathLike, feature_fn: FeatureFn | None = None, cache_shards: int = 4) -> None:
+    def __init__(self, folder: str | os.PathLike, feature_fn: FeatureFn | None = None, cache_shards: int = 4,
+                 features_dir: str | os.PathLike | None = None) -> None:
+        if feature_fn is not None and features_dir is not None:
+            raise ValueError("ShardDataset: give feature_fn or features_dir, not both")
         self.folder = Path(folder)
+        self.features_dir = None if features_dir is None else Path(features_dir)
         self.feature_fn: FeatureFn = feature_fn or rgb_features
         self.cache_shards = max(1, int(cache_shards))
         self._cache: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
@@ -70,21 +80,28 @@ class ShardDataset(torch.utils.data.Dataset):
             raise FileNotFoundError(f"shards_dir: no complete shards (part-NNNNN.parquet) in {self.folder}")
         self.shards: list[int] = []
         self.rows: list[np.ndarray] = []  # per shard: the ok row indices
+        featured = None if self.features_dir is None else set(list_shards(self.features_dir))
+        self.shards_without_features: list[int] = []  # their feature shard failed (the features stage reports it)
         for s in shards:
+            if featured is not None and s not in featured:
+                self.shards_without_features.append(s)
+                continue
             table, _ = read_shard(self.folder, s, with_arrays=False)
             ok = np.flatnonzero(ok_mask(table))
             if len(ok):
                 self.shards.append(s)
                 self.rows.append(ok)
         if not self.shards:
-            raise ValueError(f"shards_dir: no sample with status 'ok' in {self.folder}")
+            raise ValueError(f"shards_dir: no sample with status 'ok' in {self.folder}" + (
+                f" that has a feature shard in {self.features_dir}" if self.shards_without_features else ""))
         self._starts = np.cumsum([0] + [len(r) for r in self.rows])
         first = self._arrays(0)
         missing = [k for k in _REQUIRED if k not in first]
         if missing:
             raise ValueError(f"shard {self.folder}/part-{self.shards[0]:05d}.npz: missing arrays {missing}")
         _, self.height, self.width, self.layers, _ = first["P"].shape
-        probe = self.feature_fn(first["rgb"][:1], first["mask"][:1])
+        probe = self._features(first["grid"][:1], first["mask"][:1].astype(bool)) \
+            if self.features_dir is not None else self.feature_fn(first["rgb"][:1], first["mask"][:1])
         if probe.ndim != 4 or probe.shape[0] != 1 or probe.shape[2:] != (self.height, self.width):
             raise ValueError(f"feature_fn: expected (1, C, {self.height}, {self.width}) for one sample, "
                              f"got {tuple(probe.shape)}")
@@ -102,11 +119,36 @@ class ShardDataset(torch.utils.data.Dataset):
         if shard_pos in self._cache:
             self._cache.move_to_end(shard_pos)
             return self._cache[shard_pos]
-        _, arrays = read_shard(self.folder, self.shards[shard_pos])
+        table, arrays = read_shard(self.folder, self.shards[shard_pos])
+        if self.features_dir is not None:
+            arrays = {**arrays, "grid": self._feature_shard(self.shards[shard_pos], table)}
         self._cache[shard_pos] = arrays
         while len(self._cache) > self.cache_shards:
             self._cache.popitem(last=False)
         return arrays
+
+    @staticmethod
+    def _features(grid: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        from bat3r_core.predictor.features import grid_features
+
+        return grid_features(grid, mask)
+
+    def _feature_shard(self, shard: int, table) -> np.ndarray:
+        """The feature ``grid`` of training shard ``shard`` from its feature shard, checked row for row."""
+        name = f"{self.features_dir}/part-{shard:05d}"
+        try:
+            ftable, farrays = read_shard(self.features_dir, shard)
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"features_dir: no feature shard {name} for training shard {self.folder}/"
+                                    f"part-{shard:05d} (run the features stage on {self.folder})") from e
+        ids, fids = table.column("sample_id").to_pylist(), ftable.column("sample_id").to_pylist()
+        if ids != fids:
+            raise ValueError(f"features_dir: {name} holds samples {fids[:3]}... but training shard "
+                             f"{self.folder}/part-{shard:05d} holds {ids[:3]}... (a feature shard of another "
+                             "render: rerun the features stage)")
+        if "grid" not in farrays:
+            raise ValueError(f"features_dir: {name}.npz has no 'grid' array; got {sorted(farrays)}")
+        return farrays["grid"]
 
     def locate(self, index: int) -> tuple[int, int]:
         """Global sample index -> (position in ``self.shards``, row in that shard's npz)."""
@@ -129,11 +171,12 @@ class ShardDataset(torch.utils.data.Dataset):
 
     def get_batch(self, indices) -> TrainingBatch:
         """Samples ``indices`` (global) stacked into a batch."""
-        parts: dict[str, list[np.ndarray]] = {k: [] for k in _REQUIRED}
+        keys = _REQUIRED + (("grid",) if self.features_dir is not None else ())
+        parts: dict[str, list[np.ndarray]] = {k: [] for k in keys}
         for i in indices:
             pos, row = self.locate(int(i))
             arrays = self._arrays(pos)
-            for k in _REQUIRED:
+            for k in keys:
                 parts[k].append(arrays[k][row])
         a = {k: np.stack(v) for k, v in parts.items()}
         if a["P"].shape[1:] != (self.height, self.width, self.layers, 3):
@@ -141,7 +184,8 @@ class ShardDataset(torch.utils.data.Dataset):
                              f"got {a['P'].shape}")
         mask = a["mask"].astype(bool)
         occ = a["occupancy"].astype(bool)
-        features = np.asarray(self.feature_fn(a["rgb"], mask), dtype=np.float32)
+        features = self._features(a["grid"], mask) if self.features_dir is not None else \
+            np.asarray(self.feature_fn(a["rgb"], mask), dtype=np.float32)
         # shards store P relative to the object depth already: the regression target as is
         q = np.where(occ[..., None], a["Q"].astype(np.float32), np.float32(0.0))
         p = np.where(occ[..., None], a["P"].astype(np.float32), np.float32(0.0))

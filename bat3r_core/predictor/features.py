@@ -18,6 +18,7 @@ computes into a new folder and an unchanged one reuses earlier results.
 from __future__ import annotations
 
 import abc
+import functools
 import hashlib
 import json
 import os
@@ -32,7 +33,17 @@ import torch.nn.functional as F
 from bat3r_core.predictor.data import rgb_features
 from bat3r_core.shards import ShardPaths, atomic_write, list_shards, ok_mask, read_shard, write_shard
 
-FEATURE_CODE_VERSION = 1
+
+
+@functools.lru_cache(maxsize=1)
+def _code_version() -> str:
+    """The version of the feature code in the feature cache's and the PCA's config hash: the same mechanism as the
+    stages' cache keys (``bat3r_core.runs.stage_code_version`` of this module and what it imports), so an edit of
+    the feature code computes into a new cache folder and fits a new PCA."""
+    from bat3r_core.runs import stage_code_version
+
+    return stage_code_version(__name__)
+
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -189,7 +200,7 @@ class RGBExtractor(FeatureExtractor):
         return 3
 
     def identity(self, cfg: FeatureConfig) -> dict:
-        return {"extractor": self.name, "version": FEATURE_CODE_VERSION}
+        return {"extractor": self.name, "version": _code_version()}
 
     def compute_grid(self, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
         return rgb_features(rgb, mask)
@@ -328,7 +339,7 @@ class Dinov2Extractor(FeatureExtractor):
 
     def identity(self, cfg: FeatureConfig) -> dict:
         o = cfg.dinov2
-        return {"extractor": self.name, "version": FEATURE_CODE_VERSION, "model": _model_identity(o.model),
+        return {"extractor": self.name, "version": _code_version(), "model": _model_identity(o.model),
                 "input_size": o.input_size, "channels": o.channels}
 
     def pca_path(self, cfg: FeatureConfig) -> Path | None:
@@ -514,10 +525,21 @@ def extract_features(name: str, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureC
         (N, C, R, R) float32 features, zero on the background.
     """
     rgb, mask = _check_inputs(rgb, mask)
+    if len(rgb) == 0:
+        return np.zeros((0, get_extractor(name).channels(cfg)) + rgb.shape[1:3], np.float32)
+    return grid_features(extract_grids(name, rgb, mask, cfg), mask)
+
+
+def extract_grids(name: str, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureConfig = FeatureConfig()
+                  ) -> np.ndarray:
+    """The extractor's native feature grids (N, C, h, w) float32 of masked crops (``dinov2``: one cell per patch,
+    after the PCA; ``rgb``: the crop itself): what :func:`extract_features` computes before
+    :func:`grid_features` brings them to the crop's resolution, and what the features stage stores."""
+    rgb, mask = _check_inputs(rgb, mask)
     ext = get_extractor(name)
-    n, R = rgb.shape[0], rgb.shape[1]
+    n = rgb.shape[0]
     if n == 0:
-        return np.zeros((0, ext.channels(cfg), R, rgb.shape[2]), np.float32)
+        raise ValueError("extract_grids: no crop given (rgb has 0 rows)")
     config_hash = feature_config_hash(name, rgb, mask, cfg)
     cache = _cache(Path(cfg.cache_dir) / f"{name}-{config_hash}") if ext.cacheable and cfg.cache_dir else None
     keys = sample_keys(rgb, mask) if cache else [""] * n
@@ -532,8 +554,14 @@ def extract_features(name: str, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureC
         if cache:
             cache.store([keys[i] for i in b], grid)
         computed.update(zip(b, grid))
-    grids = np.stack([computed[i] if i in computed else found[keys[i]] for i in range(n)])
-    return _to_resolution(grids, mask)
+    return np.stack([computed[i] if i in computed else found[keys[i]] for i in range(n)]).astype(np.float32)
+
+
+def grid_features(grids: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Feature grids (N, C, h, w) → the model's input features (N, C, H, W) float32: bilinear (pixel-centre
+    aligned) to the resolution of ``mask`` (N, H, W), zero where it is False. Training (from the feature shards)
+    and inference (from :func:`extract_features`) both go through it, so they see the same numbers."""
+    return _to_resolution(np.asarray(grids, dtype=np.float32), np.asarray(mask, dtype=bool))
 
 
 def _to_resolution(grids: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -593,7 +621,10 @@ def extract_feature_shard(collection_shard_dir: str | os.PathLike, index: int, o
     ``out_dir``.
 
     Rows: ``sample_id, status, reason`` copied from the input, ``extractor``, ``feature_config`` (hash).
-    npz: ``features (N, C, R, R) float16`` (zeros for rows that are not ok) and ``mask (N, R, R) bool``.
+    npz: ``grid (N, C, h, w) float32``, the extractor's native grids (:func:`extract_grids`; zeros for rows that are
+    not ok), and ``mask (N, R, R) bool``; :func:`grid_features` of the two is the model's input, exactly what
+    :func:`extract_features` returns for the same crops. Storing grids keeps a DINOv2 shard small (16×16 cells
+    per sample, not R×R pixels).
     """
     table, arrays = read_shard(collection_shard_dir, index)
     if "rgb" not in arrays or "mask" not in arrays:
@@ -602,12 +633,15 @@ def extract_feature_shard(collection_shard_dir: str | os.PathLike, index: int, o
     rgb, mask = _check_inputs(arrays["rgb"], arrays["mask"])
     ok = ok_mask(table)
     ext = get_extractor(cfg.extractor)
-    feats = np.zeros((len(rgb), ext.channels(cfg)) + rgb.shape[1:3], np.float16)
     config_hash = ""
     if ok.any():
-        feats[ok] = extract_features(cfg.extractor, rgb[ok], mask[ok], cfg)
+        grids = extract_grids(cfg.extractor, rgb[ok], mask[ok], cfg)
+        feats = np.zeros((len(rgb),) + grids.shape[1:], np.float32)
+        feats[ok] = grids
         config_hash = feature_config_hash(cfg.extractor, rgb[ok], mask[ok], cfg)
+    else:
+        feats = np.zeros((len(rgb), ext.channels(cfg)) + rgb.shape[1:3], np.float32)
     rows = [{"sample_id": r["sample_id"], "status": r["status"], "reason": r["reason"],
              "extractor": cfg.extractor, "feature_config": config_hash}
             for r in table.select(["sample_id", "status", "reason"]).to_pylist()]
-    return write_shard(out_dir, index, rows, {"features": feats, "mask": mask})
+    return write_shard(out_dir, index, rows, {"grid": feats, "mask": mask})

@@ -123,3 +123,18 @@ def write_synthetic_shards(folder: str | os.PathLike, n: int, resolution: int, l
                 for i in range(len(part["rgb"]))]
         out.append(write_shard(folder, s, rows, part))
     return out
+
+
+def save_random_dinov2(folder: str | os.PathLike, seed: int = 0, patch_size: int = 8, image_size: int = 32,
+                       hidden_size: int = 32, layers: int = 2) -> str:
+    """Save a small randomly initialised ``transformers`` DINOv2 to ``folder`` (``save_pretrained``) and return its
+    path: what ``features.dinov2.model`` can name to run the ``dinov2`` feature path offline (tests, CI), where the
+    real weights cannot be downloaded. Its features carry no meaning; the code path is the real one."""
+    import torch
+    from transformers import Dinov2Config, Dinov2Model
+
+    torch.manual_seed(seed)
+    cfg = Dinov2Config(hidden_size=hidden_size, num_hidden_layers=layers, num_attention_heads=2,
+                       intermediate_size=2 * hidden_size, patch_size=patch_size, image_size=image_size)
+    Dinov2Model(cfg).save_pretrained(str(folder))
+    return str(folder)

@@ -8,6 +8,7 @@ import torch.nn.functional as F
 
 from bat3r_core.predictor.features import (
     Dinov2Options, FeatureConfig, extract_feature_shard, extract_features, feature_stats, fit_pca_from_shards,
+    grid_features,
     get_extractor, load_pca, make_feature_fn,
 )
 from bat3r_core.shards import read_shard, write_shard
@@ -16,12 +17,9 @@ R = 32  # crop resolution of these tests
 
 
 def _save_tiny_dinov2(folder, seed: int) -> None:
-    from transformers import Dinov2Config, Dinov2Model
+    from bat3r_core.predictor.synthetic import save_random_dinov2
 
-    torch.manual_seed(seed)
-    cfg = Dinov2Config(hidden_size=32, num_hidden_layers=2, num_attention_heads=2, intermediate_size=64,
-                       patch_size=8, image_size=32)
-    Dinov2Model(cfg).save_pretrained(str(folder))
+    save_random_dinov2(folder, seed=seed, patch_size=8, image_size=32)
 
 
 @pytest.fixture(scope="module")
@@ -222,11 +220,12 @@ def test_feature_shards_and_pca_from_shards(tiny_model, tmp_path):
     table, arrays = read_shard(tmp_path / "feat", 0)
     assert table.column("status").to_pylist() == ["ok", "ok", "bad_image", "ok", "ok"]
     assert set(table.column("extractor").to_pylist()) == {"dinov2"}
-    assert arrays["features"].shape == (5, 8, R, R) and arrays["features"].dtype == np.float16
-    assert not arrays["features"][2].any()
+    grid = arrays["grid"]  # the native patch grid (R / 14 cells a side at input_size 14 * cells), not R x R
+    assert grid.dtype == np.float32 and grid.shape[:2] == (5, 8) and grid.shape[2] < R
+    assert not grid[2].any()
     ok = [0, 1, 3, 4]
     direct = extract_features("dinov2", rgb[ok], mask[ok], cfg)
-    np.testing.assert_allclose(arrays["features"][ok].astype(np.float32), direct, rtol=2e-3, atol=2e-3)
+    np.testing.assert_array_equal(grid_features(grid[ok], arrays["mask"][ok]), direct)  # what training streams
     fn = make_feature_fn(cfg)
     np.testing.assert_array_equal(fn(rgb[ok], mask[ok]), direct)
     with pytest.raises(ValueError, match=r"no ok samples in shard folders .* to fit the PCA on"):

@@ -112,6 +112,37 @@ def test_dataset_targets_follow_the_shard_format(tmp_path):
         rgb_features(a["rgb"].astype(np.float32), a["mask"])
 
 
+def test_dataset_streams_the_feature_shards_of_the_features_stage(tmp_path):
+    """features_dir: the same batches as computing the features per batch, from the stored grids (rgb and a
+    DINOv2-like coarse grid), row for row; a feature shard of other samples is refused, a missing one skipped."""
+    from bat3r_core.predictor.features import FeatureConfig, extract_feature_shard, grid_features
+
+    write_synthetic_shards(tmp_path / "s", 12, 16, shard_size=4, seed=5, with_head=False)
+    for i in range(3):
+        extract_feature_shard(tmp_path / "s", i, tmp_path / "f", FeatureConfig())
+    computed, streamed = ShardDataset(tmp_path / "s"), ShardDataset(tmp_path / "s", features_dir=tmp_path / "f")
+    assert len(streamed) == len(computed) == 12 and streamed.channels == 3
+    a, b = computed.get_batch([0, 5, 11]), streamed.get_batch([0, 5, 11])
+    assert torch.equal(a.features, b.features) and torch.equal(a.targets.posed_points, b.targets.posed_points)
+    # a coarse grid (as DINOv2 stores) is upsampled and masked on the way in
+    table, arrays = read_shard(tmp_path / "f", 1)
+    coarse = np.random.default_rng(0).normal(size=(4, 5, 4, 4)).astype(np.float32)
+    write_shard(tmp_path / "f", 1, table.to_pylist(), {"grid": coarse, "mask": arrays["mask"]})
+    got = ShardDataset(tmp_path / "s", features_dir=tmp_path / "f").get_batch([4, 6]).features.numpy()
+    np.testing.assert_array_equal(got, grid_features(coarse[[0, 2]], arrays["mask"][[0, 2]].astype(bool)))
+    assert got.shape == (2, 5, 16, 16) and not got[:, :, ~arrays["mask"][0].astype(bool)][0].any()
+    # a feature shard of other samples, and a missing one
+    write_shard(tmp_path / "f", 2, [{**r, "sample_id": "other"} for r in table.to_pylist()], arrays)
+    with pytest.raises(ValueError, match=r"features_dir: .*part-00002 holds samples \['other'"):
+        ShardDataset(tmp_path / "s", features_dir=tmp_path / "f").get_batch([8])
+    for suffix in (".parquet", ".npz"):
+        (tmp_path / "f" / f"part-00002{suffix}").unlink()
+    partial = ShardDataset(tmp_path / "s", features_dir=tmp_path / "f")
+    assert len(partial) == 8 and partial.shards_without_features == [2]
+    with pytest.raises(ValueError, match="feature_fn or features_dir"):
+        ShardDataset(tmp_path / "s", rgb_features, features_dir=tmp_path / "f")
+
+
 def test_epoch_order_is_a_seeded_permutation(shards16):
     ds = ShardDataset(shards16)
     a = ds.epoch_order(3, 0, shuffle_shards=1)

@@ -41,7 +41,7 @@ def test_rerun_hits_the_cache_and_recomputes_only_what_vanished(prefect_harness,
     assert first.states == ("Completed", "Completed") and first.cached == 0
     out = layout.stage_dir(0, "features")
     table, arrays = shards.read_shard(out, 1)
-    assert arrays["features"].shape == (3, 3, 16, 16) and table.num_rows == 3
+    assert arrays["grid"].shape == (3, 3, 16, 16) and table.num_rows == 3
     before = _snapshot(out)
     assert sorted(before) == ["part-00000.npz", "part-00000.parquet", "part-00001.npz", "part-00001.parquet"]
     assert list(layout.results_dir.iterdir())  # results persisted under the run folder
