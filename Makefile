@@ -5,7 +5,8 @@ PY := $(VENV)/bin/python
 PIP := $(PY) -m pip
 STAMP := $(VENV)/.bat3r-installed
 TORCH_VERSION := 2.13.0
-PYTEST_ARGS ?= --durations=25
+# two test processes (pytest-xdist; one test file per process at a time: module fixtures stay whole)
+PYTEST_ARGS ?= -n 2 --dist loadfile --durations=25
 
 .PHONY: install test demo bench bench-demo bench-fidelity server server-stop clean browser-deps system-libs
 

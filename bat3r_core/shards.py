@@ -10,6 +10,8 @@ import hashlib
 import os
 import re
 import tempfile
+import threading
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -171,15 +173,59 @@ def read_table(folder: str | os.PathLike) -> pa.Table:
     return pa.concat_tables(tables, promote_options="default")
 
 
+_DIGESTS: "OrderedDict[tuple, bytes]" = OrderedDict()
+_DIGEST_READS: Counter = Counter()
+_DIGEST_LOCK = threading.Lock()
+_MAX_DIGESTS = 200_000
+
+
+def file_digest(path: str | os.PathLike) -> bytes:
+    """SHA-256 of a file's bytes, read once per version of the file in this process: memoised by the file's
+    identity and state (resolved path, inode, size, modification and change times in ns), so the several cache
+    keys and record checks of a run that name one shard hash it once, and a file rewritten since (a new inode
+    after an atomic write, or new times) is read again. Raises FileNotFoundError for a missing file."""
+    p = Path(path)
+    st = p.stat()
+    key = (str(p.resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    with _DIGEST_LOCK:
+        if key in _DIGESTS:
+            _DIGESTS.move_to_end(key)
+            return _DIGESTS[key]
+    h = hashlib.sha256()
+    with open(p, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    digest = h.digest()
+    with _DIGEST_LOCK:
+        _DIGESTS[key] = digest
+        _DIGEST_READS[key[0]] += 1
+        while len(_DIGESTS) > _MAX_DIGESTS:
+            _DIGESTS.popitem(last=False)
+    return digest
+
+
+def file_digest_reads() -> dict[str, int]:
+    """How many times each file (resolved path) was read by :func:`file_digest` since the last
+    :func:`forget_file_digests` (for tests and diagnostics)."""
+    with _DIGEST_LOCK:
+        return dict(_DIGEST_READS)
+
+
+def forget_file_digests() -> None:
+    """Drop the memoised digests and the read counts (what a fresh process starts with)."""
+    with _DIGEST_LOCK:
+        _DIGESTS.clear()
+        _DIGEST_READS.clear()
+
+
 def content_hash(paths: Iterable[str | os.PathLike], extra: bytes | str = b"") -> str:
-    """SHA-256 (hex, 16 chars) over the bytes of the given files, in order, plus ``extra``."""
+    """SHA-256 (hex, 16 chars) over the names and contents (:func:`file_digest`) of the given files, in order,
+    plus ``extra``."""
     h = hashlib.sha256()
     for p in paths:
         p = Path(p)
         h.update(p.name.encode())
-        with open(p, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
+        h.update(file_digest(p))
     h.update(extra.encode() if isinstance(extra, str) else extra)
     return h.hexdigest()[:16]
 

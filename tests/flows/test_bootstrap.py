@@ -78,7 +78,7 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
     assert len(result["iterations"]) == 3
     for i in (1, 2):
         it = result["iterations"][i]
-        assert set(it["states"]) == {"infer", "fit", "pseudo_labels", "filter", "filter_check", "plan", "render",
+        assert set(it["states"]) == {"infer", "fit", "pseudo_labels", "filter", "filter_check", "plan_views", "render",
                                      "features", "train", "collection_infer", "evaluate_collection", "test_infer",
                                      "evaluate"}
         fits = shards.read_table(layout.stage_dir(i, "fit")).to_pylist()
@@ -108,7 +108,8 @@ def test_refinement_iterations_fit_render_train_and_evaluate(first_run, catalog)
 
         stamp = json.loads((layout.stage_dir(i, "train") / "inputs.json").read_text())["inputs_hash"]
         previous = Path(result["iterations"][i - 1]["predictor"])
-        assert stamp == shards.content_hash(training_inputs(str(layout.stage_dir(i, "render"))) + [previous])
+        assert stamp == shards.content_hash(training_inputs(str(layout.stage_dir(i, "render")))
+                                            + training_inputs(str(layout.stage_dir(i, "features"))) + [previous])
     rows = shards.read_table(layout.stage_dir(2, "evaluate")).to_pylist()
     assert len(rows) == 4 and all(r["iteration"] == 2 and r["split"] == "test" for r in rows)
     # pseudo-label quality against the toy collection's hidden ground truth, shown in the report
@@ -151,7 +152,13 @@ def test_rerun_hits_the_cache_for_every_task(first_run, catalog):
     before = {s: _hashes(layout.stage_dir(0, s)) for s in ("plan", "render", "features")}
     predictor = shards.content_hash([layout.stage_dir(0, "train") / "predictor.pt"])
     metrics = shards.content_hash([layout.metrics])
+    shards.forget_file_digests()  # as a fresh process would start: nothing hashed yet
     again = bootstrap(category="toy", preset="tiny", iterations=2, run_name="t1", overrides=TINY)
+    # every run file is read for its content hash at most once, though several tasks' cache keys and the
+    # records' intact checks name it (hash once: shards.file_digest)
+    reads = {Path(f): n for f, n in shards.file_digest_reads().items() if str(layout.root) in f}
+    assert reads and max(reads.values()) == 1, {f: n for f, n in reads.items() if n > 1}
+    assert any(f.parent.name == "render" for f in reads)  # the shards several stages name were hashed
     states = again["iterations"][0]["states"]
     assert states == {"plan": ["Cached"], "render": ["Cached", "Cached"], "features": ["Cached", "Cached"],
                       "train": ["Cached"], "collection_infer": ["Cached"], "evaluate_collection": ["Cached"],
@@ -251,7 +258,7 @@ def test_raw_image_baseline_trains_on_the_photos_with_fitted_labels(first_run, c
                        overrides={**TINY, "train.batch_size": 4})  # 4 photos: one batch
     layout = RunLayout(catalog / "runs", "toy", "raw")
     it = result["iterations"][1]
-    assert "plan" not in it["states"] and set(it["states"]) >= {"infer", "fit", "render", "train", "evaluate"}
+    assert "plan_views" not in it["states"] and set(it["states"]) >= {"infer", "fit", "raw_images", "train", "evaluate"}
     table, arrays = shards.read_shard(layout.stage_dir(1, "render"), 0)
     collection, photos = shards.read_shard(layout.run_stage_dir("collection"), 0)
     # the training images are the collection's own crops, labelled by ray casting the fitted meshes

@@ -61,7 +61,7 @@ def test_key_matches_a_direct_reference(shard, tmp_path):
     h = hashlib.sha256()
     h.update(b"stage=features\0code=v1\0")
     for f in files:
-        h.update(f"input={f.resolve()}:{hashlib.sha256(f.name.encode() + f.read_bytes()).hexdigest()[:16]}\0"
+        h.update(f"input={f.resolve()}:{hashlib.sha256(f.name.encode() + hashlib.sha256(f.read_bytes()).digest()).hexdigest()[:16]}\0"
                  .encode())
     h.update(b'config={"extractor":"rgb"}\0')
     h.update(f"output={out.resolve()}\0".encode())
