@@ -115,7 +115,8 @@ def _render_check(report: AssetCheckReport, prepared, spec: dict, out_dir: Path,
                   num_views: int) -> None:
     from bat3r_core.pointmaps import dual_point_maps
     from bat3r_core.render.config import RenderConfig, SceneAssets
-    from bat3r_core.render.runner import posed_vertices, render_shard
+    from bat3r_core.labels import posed_vertices
+    from bat3r_core.render.runner import render_shard
     from bat3r_core.shards import read_shard
 
     rig = prepared.rig

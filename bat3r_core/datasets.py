@@ -441,7 +441,7 @@ def raw_image_shard(rig: Rig, fit_dir: str | os.PathLike, collection_dir: str | 
     """
     from bat3r_core.fitting.io import camera_from_row
     from bat3r_core.pointmaps import encode_float16, storage_dtype
-    from bat3r_core.render.runner import label_job
+    from bat3r_core.labels import label_job
     from bat3r_core.shards import read_shard, write_shard
 
     fits = {r["sample_id"]: r for r in read_shard(fit_dir, index, with_arrays=False)[0].to_pylist()}

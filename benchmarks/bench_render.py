@@ -34,7 +34,8 @@ from _results import record  # noqa: E402
 
 from bat3r_core.datasets import canonical_jobs  # noqa: E402
 from bat3r_core.render.config import RenderConfig, SceneAssets  # noqa: E402
-from bat3r_core.render.runner import _render_images, posed_vertices  # noqa: E402
+from bat3r_core.labels import posed_vertices  # noqa: E402
+from bat3r_core.render.runner import _render_images  # noqa: E402
 from bat3r_core.rig_io import save_rig_glb  # noqa: E402
 from bat3r_core.toy import TOY_BODY_FRAME, TOY_COATS, build_toy_rig  # noqa: E402
 

@@ -27,7 +27,7 @@ from bat3r_core.pointmaps import dual_point_cloud
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.data import FeatureFn, rgb_features
 from bat3r_core.predictor.network import DualPointMapNet
-from bat3r_core.predictor.train import load_configs, read_state
+from bat3r_core.predictor.checkpoints import load_configs, read_state
 from bat3r_core.shards import STATUS_OK, ShardPaths, atomic_write, list_shards, read_shard, shard_paths, write_shard
 
 #: Reference inference filters.

@@ -34,7 +34,8 @@ import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
-from bat3r_core.config_utils import from_mapping, to_mapping
+from bat3r_core.config_utils import to_mapping
+from bat3r_core.predictor.checkpoints import CHECKPOINT_FORMAT, read_state
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.data import FeatureFn, ShardDataset
 from bat3r_core.predictor.loss import dual_pointmap_loss, huber_delta
@@ -59,7 +60,6 @@ def progress_line(progress: dict[str, Any]) -> str:
 
 def _log_progress(progress: dict[str, Any]) -> None:
     _logger.info("training %s", progress_line(progress))
-CHECKPOINT_FORMAT = "bat3r-predictor/1"
 
 
 class WarmupCosine:
@@ -87,18 +87,6 @@ def _dist_env() -> tuple[int, int, int]:
 
 def _torch_save_atomic(obj: Any, path: Path) -> None:
     atomic_write(path, lambda tmp: torch.save(obj, tmp))
-
-
-def read_state(path: str | os.PathLike, argument: str) -> dict[str, Any]:
-    """The state dict of a ``predictor.pt`` or training ``checkpoint.pt`` (``torch.load(weights_only=True)``),
-    checked to be one: a missing file or another kind of file is an error naming ``argument`` and the path."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{argument}: no such file {path}")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{argument}: {path} is not a '{CHECKPOINT_FORMAT}' predictor checkpoint")
-    return state
 
 
 def _rng_state() -> dict[str, Any]:
@@ -323,12 +311,6 @@ class Trainer:
         self.step, self.epoch, self.position = int(state["step"]), int(state["epoch"]), int(state["position"])
         self._order = None
         _set_rng_state(state["rng"])
-
-
-def load_configs(state: dict[str, Any]) -> tuple[ModelConfig, TrainConfig]:
-    """Configs stored in a checkpoint/predictor state dict, rebuilt strictly."""
-    return (from_mapping(ModelConfig, state["model_config"], "checkpoint.model_config"),
-            from_mapping(TrainConfig, state["train_config"], "checkpoint.train_config"))
 
 
 def train_predictor(shards_dir: str | os.PathLike, out_dir: str | os.PathLike, model_cfg: ModelConfig,

@@ -26,12 +26,13 @@ from typing import Callable, Sequence
 import numpy as np
 
 from bat3r_core.config_utils import to_mapping
+from bat3r_core.labels import label_job, posed_vertices
+from bat3r_core.metrics import mask_iou
 from bat3r_core.render.config import RenderConfig, SceneAssets, render_config
 from bat3r_core.render.jobs import RenderJob, job_to_dict, read_jobs
 from bat3r_core.rig import Rig
 
-__all__ = ["ShardResult", "render_shard", "render_jobs", "render_command", "convert_to_glb", "label_job",
-           "posed_vertices", "mask_iou"]
+__all__ = ["ShardResult", "render_shard", "render_jobs", "render_command", "convert_to_glb"]
 
 _PROJECT_ROOT = Path(__file__).resolve().parents[2]
 PROGRESS_INTERVAL_S = 30.0
@@ -224,42 +225,6 @@ def _render_images(jobs: Sequence[RenderJob], posed: Sequence[np.ndarray | None]
     results = _read_results(results_path)
     results.update(failed)
     return results, processes, crashes
-
-
-def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
-    """Intersection over union of two (H, W) bool masks (1.0 when both are empty)."""
-    a, b = np.asarray(a, bool), np.asarray(b, bool)
-    union = np.logical_or(a, b).sum()
-    return 1.0 if union == 0 else float(np.logical_and(a, b).sum() / union)
-
-
-def posed_vertices(rig: Rig, job: RenderJob) -> np.ndarray:
-    """(V, 3) float64: the rig skinned by :mod:`bat3r_core.skinning` with the job's θ and global similarity
-    (world frame, metres) — what the worker renders and what the labels ray-cast."""
-    import torch
-
-    from bat3r_core.skinning import skin
-
-    tensors = rig.tensors(dtype=torch.float64)
-    out = skin(tensors, torch.as_tensor(np.asarray(job.excess_rotations, dtype=np.float64))[None],
-               global_scale=torch.tensor([float(job.global_scale)], dtype=torch.float64),
-               global_rotation=torch.as_tensor(np.asarray(job.global_rotation, dtype=np.float64))[None],
-               global_translation=torch.as_tensor(np.asarray(job.global_translation, dtype=np.float64))[None])
-    return out.vertices[0].numpy()
-
-
-def label_job(rig: Rig, job: RenderJob, num_layers: int = 4, posed: np.ndarray | None = None):
-    """Exact labels of a job: the rig skinned with the job's pose (:func:`posed_vertices`, or ``posed`` when
-    given), ray-cast through its camera.
-
-    Returns:
-        (posed_vertices (V, 3) float64 world frame metres, :class:`bat3r_core.pointmaps.DualPointMaps`).
-    """
-    from bat3r_core.pointmaps import dual_point_maps
-
-    posed = posed_vertices(rig, job) if posed is None else posed
-    maps = dual_point_maps(posed, rig.rest_vertices, rig.faces, job.camera, num_layers=num_layers)
-    return posed, maps
 
 
 def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | os.PathLike, shard_index: int = 0,
