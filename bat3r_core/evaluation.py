@@ -24,19 +24,15 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
 from bat3r_core import shards, stages
-from bat3r_core.cameras import PinholeCamera
 from bat3r_core.metrics import SampleMetrics
 from bat3r_core.shards import atomic_write
-
-if TYPE_CHECKING:
-    from bat3r_core.predictor.collection import CropTransform
 
 __all__ = [
     "SAMPLE_SCHEMA",
@@ -53,9 +49,19 @@ __all__ = [
     "upsert_metrics",
     "read_metrics",
     "evaluate_run",
-    "load_ground_truth",
-    "ground_truth_camera",
 ]
+
+_MOVED = ("sample_surface", "load_ground_truth", "ground_truth_camera", "evaluate_prediction_shard",
+          "PSEUDO_LABEL_FILE", "pseudo_label_errors", "write_pseudo_label_errors")
+
+
+def __getattr__(name: str):
+    """The ground-truth evaluation moved to :mod:`bat3r_core.evaluation_truth`; its names still resolve here."""
+    if name in _MOVED:
+        from bat3r_core import evaluation_truth
+
+        return getattr(evaluation_truth, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 FAILURE_THRESHOLD_CM = 5.0
 METRICS_FILE = "metrics.parquet"
@@ -354,179 +360,3 @@ def evaluate_run(run_dir: str | os.PathLike) -> Path:
         raise FileNotFoundError(f"run folder {run_dir} does not exist")
     rows = aggregate(read_sample_rows(run_dir)) + aggregate_collection(read_collection_rows(run_dir))
     return upsert_metrics(run_dir, rows)
-
-
-# ------------------------------------------------------------------------------------ the evaluate stage
-
-
-def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` points uniformly distributed over a triangle mesh's area: vertices (V, 3), faces (F, 3) → (n, 3)."""
-    tri = np.asarray(vertices, dtype=np.float64)[np.asarray(faces)]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    face = rng.choice(len(tri), size=n, p=area / area.sum())
-    u, v = rng.random(n), rng.random(n)
-    flip = u + v > 1.0
-    u[flip], v[flip] = 1.0 - u[flip], 1.0 - v[flip]
-    t = tri[face]
-    return t[:, 0] + u[:, None] * (t[:, 1] - t[:, 0]) + v[:, None] * (t[:, 2] - t[:, 0])
-
-
-def load_ground_truth(path: str | os.PathLike) -> dict[str, dict[str, np.ndarray]]:
-    """The hidden ground truth of a generated collection (``ground_truth.npz`` of ``bat3r_core.datasets``), by
-    sample id: ``excess_rotations``, ``global_scale``, ``global_rotation``, ``global_translation``,
-    ``camera_rotation``, ``camera_translation``, ``K``, ``posed_vertices`` (world frame)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"ground truth {path} does not exist (generated collections write it beside the "
-                                "images; user test splits need a ground_truth.npz in the same format)")
-    keys = ("excess_rotations", "global_scale", "global_rotation", "global_translation", "camera_rotation",
-            "camera_translation", "K", "posed_vertices")
-    with np.load(path, allow_pickle=False) as z:
-        missing = [k for k in ("sample_id", *keys) if k not in z.files]
-        if missing:
-            raise ValueError(f"ground truth {path} lacks array(s) {missing}")
-        data = {k: z[k] for k in ("sample_id", *keys)}
-    return {str(sid): {k: data[k][i] for k in keys} for i, sid in enumerate(data["sample_id"])}
-
-
-def ground_truth_camera(truth: Mapping[str, np.ndarray], crop: CropTransform) -> PinholeCamera:
-    """The true camera of one generated image (a :func:`load_ground_truth` entry) as the model sees it: through
-    the collection's crop ``crop`` (a :class:`~bat3r_core.predictor.collection.CropTransform`; intrinsics
-    ``crop.intrinsics(K)``, ``crop.resolution`` pixels square), world → camera as in the ground truth."""
-    k = crop.intrinsics(np.asarray(truth["K"], np.float64))
-    return PinholeCamera(fx=k[0, 0], fy=k[1, 1], cx=k[0, 2], cy=k[1, 2], width=crop.resolution,
-                         height=crop.resolution, R=np.asarray(truth["camera_rotation"], np.float64),
-                         t=np.asarray(truth["camera_translation"], np.float64))
-
-
-def evaluate_prediction_shard(predictions_dir: str | os.PathLike, index: int, ground_truth: Mapping[str, Mapping],
-                              rig, body_frame: Mapping[str, Any], split: str, iteration: int,
-                              out_dir: str | os.PathLike, gt_points: int = 2000, max_pred_points: int = 3000,
-                              seed: int = 0) -> shards.ShardPaths:
-    """Per-sample evaluation rows for inference shard ``index`` (``bat3r_core.predictor.infer`` output).
-
-    For every predicted test image: the RMS Chamfer distances (full alignment and model-view alignment) between its
-    predicted posed points (all confident layers) and ``gt_points`` points sampled uniformly on the ground-truth
-    posed surface in the ground-truth camera frame, and the camera rotation error ΔR between the predicted and
-    true orientation of the body in the camera: the rotation of the least-squares rigid fit canonical → camera
-    of the predicted dual point cloud (Q → P) against the same fit of the rest mesh onto the true posed mesh.
-    Rows also carry the true body-centric camera angles and pose features (failure-rate tables, clusters).
-
-    Args:
-        ground_truth: :func:`load_ground_truth` output. rig: the category's :class:`~bat3r_core.rig.Rig`.
-        body_frame: catalog body-frame joints ``{"origin", "forward", "horizontal"}``.
-    Returns the written shard of ``out_dir`` (rows in prediction row order; unpredicted or unknown samples get a
-    non-ok status and the reason).
-    """
-    import torch
-
-    from bat3r_core.datasets import rig_body_frame
-    from bat3r_core.metrics import evaluate_sample, kabsch
-    from bat3r_core.poses import pose_features
-    from bat3r_core.predictor.infer import clouds_path, load_clouds
-    from bat3r_core.skinning import skin
-    from bat3r_core.viewpoints import spherical_from_pose
-
-    table, _ = shards.read_shard(predictions_dir, index, with_arrays=False)
-    clouds = load_clouds(clouds_path(predictions_dir, index))
-    rig_t = rig.tensors(dtype=torch.float64)
-    rest_joints = rig.rest_joint_positions
-    rows = []
-    for i, pred in enumerate(table.to_pylist()):
-        sid = pred["sample_id"]
-        if pred["status"] != shards.STATUS_OK:
-            rows.append(sample_row(sid, split, iteration, None, status=pred["status"],
-                                   reason=f"prediction: {pred['reason']}"))
-            continue
-        gt = ground_truth.get(sid)
-        if gt is None:
-            rows.append(sample_row(sid, split, iteration, None, status="no_ground_truth",
-                                   reason=f"sample {sid!r} is not in the ground truth"))
-            continue
-        cloud = clouds.instance(i)
-        if len(cloud["posed_points"]) < 3:
-            rows.append(sample_row(sid, split, iteration, None, status="empty",
-                                   reason=f"{len(cloud['posed_points'])} confident predicted points"))
-            continue
-        rng = np.random.default_rng([seed, iteration, index, i])
-        r_cam, t_cam = np.asarray(gt["camera_rotation"], np.float64), np.asarray(gt["camera_translation"], np.float64)
-        verts_cam = np.asarray(gt["posed_vertices"], np.float64) @ r_cam.T + t_cam
-        target = sample_surface(verts_cam, rig.faces, gt_points, rng)
-        pred_p = np.asarray(cloud["posed_points"], np.float64)
-        pred_q = np.asarray(cloud["canonical_points"], np.float64)
-        if len(pred_p) > max_pred_points:
-            keep = rng.choice(len(pred_p), max_pred_points, replace=False)
-            pred_p, pred_q = pred_p[keep], pred_q[keep]
-        r_pred = kabsch(pred_q, pred_p).rotation
-        r_true = kabsch(rig.rest_vertices, verts_cam).rotation
-        up = r_cam @ np.asarray(gt["global_rotation"], np.float64) @ np.array([0.0, 1.0, 0.0])
-        metrics = evaluate_sample(pred_p, target, up=up, pred_rotation=r_pred, gt_rotation=r_true)
-        theta = np.asarray(gt["excess_rotations"], np.float64)
-        out = skin(rig_t, torch.as_tensor(theta)[None])
-        joints = out.joints[0].numpy()
-        feats = pose_features(theta[None], joints[None], rest_joints)[0]
-        g = float(gt["global_scale"]) * joints @ np.asarray(gt["global_rotation"], np.float64).T \
-            + np.asarray(gt["global_translation"], np.float64)
-        sph = spherical_from_pose(rig_body_frame(rig, g, body_frame), r_cam, t_cam)
-        rows.append(sample_row(sid, split, iteration, metrics, azimuth_deg=sph.azimuth_deg,
-                               elevation_deg=sph.elevation_deg, roll_deg=sph.roll_deg, pose_features=feats))
-    return write_sample_rows(out_dir, index, rows)
-
-
-PSEUDO_LABEL_FILE = "pseudo_labels.parquet"
-"""``iter-NN/evaluate/pseudo_labels.parquet``: fitted-pose vs hidden ground-truth pose errors of the collection."""
-
-
-def pseudo_label_errors(fit_rows: Sequence[Mapping[str, Any]], ground_truth: Mapping[str, Mapping], rig
-                        ) -> list[dict[str, Any]]:
-    """Pose errors of the fits (pseudo-labels) against the hidden ground truth, where it exists.
-
-    The pose alone is compared: the rig is posed by the fitted and the true θ (unit bone scales, no global
-    similarity), the fitted mesh is rigidly aligned onto the true one (Kabsch over all vertices), and the mean
-    vertex and joint distances (cm) and the mean rotation difference over the joints (degrees; the root counts as
-    0, its rotation being a global orientation) are reported.
-    Fits whose status is not ``ok`` or that have no ground truth are left out.
-
-    Returns rows ``sample_id, joint_err_cm, vertex_err_cm, angle_err_deg``.
-    """
-    import torch
-
-    from bat3r_core.analysis import pose_errors
-    from bat3r_core.metrics import kabsch
-    from bat3r_core.skinning import skin
-
-    keep = [r for r in fit_rows if r["status"] == shards.STATUS_OK and r["sample_id"] in ground_truth]
-    if not keep:
-        return []
-    j = rig.num_joints
-    fitted = np.stack([np.asarray(r["excess_rotations"], np.float64).reshape(j, 3) for r in keep])
-    truth = np.stack([np.asarray(ground_truth[r["sample_id"]]["excess_rotations"], np.float64) for r in keep])
-    tensors = rig.tensors(dtype=torch.float64)
-    fo, to = skin(tensors, torch.as_tensor(fitted)), skin(tensors, torch.as_tensor(truth))
-    fv, fj, tv, tj = fo.vertices.numpy(), fo.joints.numpy(), to.vertices.numpy(), to.joints.numpy()
-    for i in range(len(keep)):
-        align = kabsch(fv[i], tv[i])
-        fv[i], fj[i] = align.apply(fv[i]), align.apply(fj[i])
-    root = rig.parents < 0  # the root's rotation is a global orientation, not pose: compare it as equal
-    f_local, t_local = fitted.copy(), truth.copy()
-    f_local[:, root] = 0.0
-    t_local[:, root] = 0.0
-    errors = pose_errors(fj, tj, fv, tv, f_local, t_local)
-    return [{"sample_id": r["sample_id"], "joint_err_cm": float(errors.joint_err_cm[i]),
-             "vertex_err_cm": float(errors.vertex_err_cm[i]), "angle_err_deg": float(errors.angle_err_deg[i])}
-            for i, r in enumerate(keep)]
-
-
-def write_pseudo_label_errors(fit_dir: str | os.PathLike, ground_truth: Mapping[str, Mapping], rig,
-                              out_dir: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
-    """:func:`pseudo_label_errors` of every fit shard of ``fit_dir`` → ``out_dir/pseudo_labels.parquet``.
-
-    Returns the file and a summary ``{"n", "joint_err_cm", "vertex_err_cm", "angle_err_deg"}`` (means over the
-    rows; None without rows)."""
-    rows = pseudo_label_errors(shards.read_table(fit_dir).to_pylist(), ground_truth, rig)
-    columns = ("joint_err_cm", "vertex_err_cm", "angle_err_deg")
-    schema = pa.schema([("sample_id", pa.string())] + [(c, pa.float64()) for c in columns])
-    table = pa.Table.from_pylist(rows, schema=schema)
-    path = atomic_write(Path(out_dir) / PSEUDO_LABEL_FILE, lambda tmp: pq.write_table(table, tmp))
-    means = {c: (float(np.mean([r[c] for r in rows])) if rows else None) for c in columns}
-    return path, {"n": len(rows), **means}

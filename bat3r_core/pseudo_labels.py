@@ -17,14 +17,13 @@ distance; thresholds not published). Here:
 * :func:`write_filter_shards` — one filter shard per fit shard (rows in the fit shard's order), what plan views
   reads.
 * :func:`filter_precision` — precision / recall of the kept set against the truth: a fit is *good* when its
-  vertex error (``bat3r_core.evaluation.pseudo_label_errors``) is below the rest pose's (:func:`rest_pose_errors`).
+  vertex error (``bat3r_core.evaluation_truth.pseudo_label_errors``) is below the rest pose's (:func:`rest_pose_errors`).
 """
 from __future__ import annotations
 
 import math
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -258,9 +257,9 @@ def filter_counts(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
 def rest_pose_errors(fit_rows: Sequence[Mapping[str, Any]], ground_truth: Mapping[str, Mapping], rig
                      ) -> list[dict[str, Any]]:
     """The errors of the rest pose against the truth, for the same fits as
-    ``bat3r_core.evaluation.pseudo_label_errors`` (which it calls with every θ set to zero): what a fit has to beat
+    ``bat3r_core.evaluation_truth.pseudo_label_errors`` (which it calls with every θ set to zero): what a fit has to beat
     to be a useful pseudo-label."""
-    from bat3r_core.evaluation import pseudo_label_errors
+    from bat3r_core.evaluation_truth import pseudo_label_errors
 
     zero = [{**r, "excess_rotations": [0.0] * len(r["excess_rotations"])} for r in fit_rows]
     return pseudo_label_errors(zero, ground_truth, rig)

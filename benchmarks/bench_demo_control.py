@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _results import record  # noqa: E402
 
-from bat3r_core import evaluation, shards  # noqa: E402
+from bat3r_core import evaluation, evaluation_truth, shards  # noqa: E402
 from bat3r_core.datasets import raw_image_shard  # noqa: E402
 from bat3r_core.predictor.collection import crop_transform_from_row  # noqa: E402
 from bat3r_core.predictor.data import ShardDataset  # noqa: E402
@@ -49,10 +49,10 @@ def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: in
     evaluate stages compute them for ``iteration`` (same features, ground truth and sampling seed)."""
     predict_collection(predictor, settings.layout.run_stage_dir("test"), out / "test_infer",
                        feature_fn=make_feature_fn(settings.features), device="cpu")
-    gt = evaluation.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
+    gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
     rig = load_rig(settings.assets.asset)
     for i in shards.list_shards(out / "test_infer"):
-        evaluation.evaluate_prediction_shard(out / "test_infer", i, gt, rig, settings.body_frame, "test", iteration,
+        evaluation_truth.evaluate_prediction_shard(out / "test_infer", i, gt, rig, settings.body_frame, "test", iteration,
                                              out / "evaluate", seed=seed)
     return evaluation.aggregate(shards.read_table(out / "evaluate"))[0]
 
@@ -60,7 +60,7 @@ def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: in
 def true_fit_rows(collection_rows: list[dict], ground_truth: dict) -> list[dict]:
     """Fit rows (the fit stage's columns that ``raw_image_shard`` reads) carrying the hidden truth of each ok
     collection image that has one: its pose θ and the camera taking the skinned rig (no global similarity) to the
-    pixels of the collection's crop (``evaluation.ground_truth_camera``) — the ground truth's global similarity
+    pixels of the collection's crop (``evaluation_truth.ground_truth_camera``) — the ground truth's global similarity
     folded into the camera (the toy's global scale is 1)."""
     rows = []
     for row in collection_rows:
@@ -70,7 +70,7 @@ def true_fit_rows(collection_rows: list[dict], ground_truth: dict) -> list[dict]
         if abs(float(gt["global_scale"]) - 1.0) > 1e-9:
             raise ValueError(f"{row['sample_id']}: global scale {float(gt['global_scale'])} cannot be folded into a "
                              "camera; the oracle needs unit-scale ground truth")
-        cam = evaluation.ground_truth_camera(gt, crop_transform_from_row(row))
+        cam = evaluation_truth.ground_truth_camera(gt, crop_transform_from_row(row))
         rg, tg = np.asarray(gt["global_rotation"], np.float64), np.asarray(gt["global_translation"], np.float64)
         rows.append({"sample_id": row["sample_id"], "status": shards.STATUS_OK, "reason": "",
                      "excess_rotations": np.asarray(gt["excess_rotations"], np.float64).ravel().tolist(),
@@ -83,7 +83,7 @@ def true_fit_rows(collection_rows: list[dict], ground_truth: dict) -> list[dict]
 def _oracle_dataset(settings, rig, out: Path) -> Path:
     """The collection's crops labelled with their hidden truth, as training shards under ``out/data``."""
     collection = settings.layout.run_stage_dir("collection")
-    gt = evaluation.load_ground_truth(Path(settings.collection["ground_truth"]) / "ground_truth.npz")
+    gt = evaluation_truth.load_ground_truth(Path(settings.collection["ground_truth"]) / "ground_truth.npz")
     for i in shards.list_shards(collection):
         rows, _ = shards.read_shard(collection, i, with_arrays=False)
         shards.write_shard(out / "true_fit", i, true_fit_rows(rows.to_pylist(), gt))

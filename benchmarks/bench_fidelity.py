@@ -39,7 +39,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _results import RESULTS_DIR, record  # noqa: E402
 from bench_demo_control import _oracle_dataset, _test_metrics  # noqa: E402
 
-from bat3r_core import evaluation  # noqa: E402
 from bat3r_core.cli import add_catalog_argument, parse_overrides  # noqa: E402
 from bat3r_core.predictor.data import ShardDataset  # noqa: E402
 from bat3r_core.predictor.features import make_feature_fn  # noqa: E402

@@ -6,7 +6,7 @@ point, the true canonical point Q* and posed point P* of the same pixel and laye
 ground truth (pose, camera, and the collection's crop of the image) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
 
 * the per-image RMS error of the predicted Q and of the predicted P (centred, per camera axis; z is depth);
-* the pose error of fits (``bat3r_core.evaluation.pseudo_label_errors``: mean vertex error after rigid alignment)
+* the pose error of fits (``bat3r_core.evaluation_truth.pseudo_label_errors``: mean vertex error after rigid alignment)
   with the run's fitting configuration on four versions of the same points: as predicted, with P replaced by P*,
   with Q replaced by Q*, with both replaced, next to the rest pose (no fitting at all).
 
@@ -34,7 +34,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _results import record  # noqa: E402
 
-from bat3r_core import evaluation, shards  # noqa: E402
+from bat3r_core import evaluation_truth, shards  # noqa: E402
 from bat3r_core.cameras import PinholeCamera  # noqa: E402
 from bat3r_core.fitting.fit import FittingAsset, PointCloudInstance, fit_batch  # noqa: E402
 from bat3r_core.fitting.io import fit_rows, instances_from_predictions  # noqa: E402
@@ -63,7 +63,7 @@ def truth_at_points(inst: PointCloudInstance, gt: dict, rig, resolution: int, cr
     image's); None when the image is the crop (``resolution`` pixels square).
     """
     crop = crop or CropTransform(0.0, 0.0, float(resolution), resolution)
-    camera = evaluation.ground_truth_camera(gt, crop)
+    camera = evaluation_truth.ground_truth_camera(gt, crop)
     maps = dual_point_maps(gt["posed_vertices"], rig.rest_vertices, rig.faces, camera, 4, "world", nthreads=1)
     u = np.clip(np.floor(inst.pixels[:, 0]).astype(int), 0, resolution - 1)
     v = np.clip(np.floor(inst.pixels[:, 1]).astype(int), 0, resolution - 1)
@@ -103,8 +103,8 @@ def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
     """Mean and median vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the
     rest pose."""
     ok = [r for r in rows if r["status"] == shards.STATUS_OK]
-    fitted = evaluation.pseudo_label_errors(ok, gt, rig)
-    rest = evaluation.pseudo_label_errors(
+    fitted = evaluation_truth.pseudo_label_errors(ok, gt, rig)
+    rest = evaluation_truth.pseudo_label_errors(
         [dict(r, excess_rotations=[0.0] * (3 * rig.num_joints)) for r in ok], gt, rig)
     f = np.array([e["vertex_err_cm"] for e in fitted])
     n = np.array([e["vertex_err_cm"] for e in rest])
@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> dict:
     infer_dir = layout.stage_dir(args.iteration, "infer")
     if not shards.list_shards(infer_dir):
         raise FileNotFoundError(f"{infer_dir}: no inference shards; run iteration {args.iteration} first")
-    gt = evaluation.load_ground_truth(Path(settings.collection["ground_truth"]) / "ground_truth.npz")
+    gt = evaluation_truth.load_ground_truth(Path(settings.collection["ground_truth"]) / "ground_truth.npz")
     rig = load_rig(settings.assets.asset)
     r = settings.image_size
     camera = PinholeCamera.from_fov(settings.camera_prior.fov_deg, r, r)

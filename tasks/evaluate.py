@@ -6,7 +6,7 @@ from pathlib import Path
 
 from prefect import task
 
-from bat3r_core import evaluation, report, shards
+from bat3r_core import evaluation, evaluation_truth, report, shards
 from tasks._cache import shard_input_files, stage_task
 
 __all__ = ["update_metrics", "build_report", "evaluation_inputs", "evaluate_shard", "pseudo_label_quality",
@@ -60,14 +60,14 @@ def _shard_inputs(p: dict) -> list[Path]:
             task_run_name="evaluate-{index}")
 def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: dict) -> dict:
     """Per-sample evaluation rows of the test predictions in shard ``index`` of ``predictions_dir``
-    (``bat3r_core.evaluation.evaluate_prediction_shard``) → shard ``index`` of ``out_dir``.
+    (``bat3r_core.evaluation_truth.evaluate_prediction_shard``) → shard ``index`` of ``out_dir``.
     config: ``{"asset", "ground_truth" (ground_truth.npz), "body_frame", "split", "iteration", "seed"}``.
     Returns the shard record."""
     from bat3r_core.rig_io import load_rig
     from bat3r_core.runs import shard_record
 
-    gt = evaluation.load_ground_truth(config["ground_truth"])
-    paths = evaluation.evaluate_prediction_shard(
+    gt = evaluation_truth.load_ground_truth(config["ground_truth"])
+    paths = evaluation_truth.evaluate_prediction_shard(
         predictions_dir, index, gt, load_rig(config["asset"]), dict(config["body_frame"]), str(config["split"]),
         int(config["iteration"]), out_dir, seed=int(config.get("seed", 0)))
     return shard_record("evaluate", index, paths)
@@ -75,16 +75,16 @@ def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: dict)
 
 @stage_task("pseudo_labels", inputs=lambda p: [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"])]
             + [f for i in shards.list_shards(p["fit_dir"]) for f in shard_input_files(p["fit_dir"], i)],
-            output=lambda p: Path(p["out_dir"]) / evaluation.PSEUDO_LABEL_FILE, retries=1)
+            output=lambda p: Path(p["out_dir"]) / evaluation_truth.PSEUDO_LABEL_FILE, retries=1)
 def pseudo_label_quality(fit_dir: str, out_dir: str, config: dict) -> dict:
     """Fitted-pose vs hidden ground-truth pose errors of an iteration's collection fits
-    (``bat3r_core.evaluation.write_pseudo_label_errors``) → ``out_dir/pseudo_labels.parquet``.
+    (``bat3r_core.evaluation_truth.write_pseudo_label_errors``) → ``out_dir/pseudo_labels.parquet``.
     config: ``{"asset", "ground_truth" (the collection's ground_truth.npz)}``. Returns ``stage, files,
     content_hash, n`` and the mean errors."""
     from bat3r_core.rig_io import load_rig
 
-    path, summary = evaluation.write_pseudo_label_errors(
-        fit_dir, evaluation.load_ground_truth(config["ground_truth"]), load_rig(config["asset"]), out_dir)
+    path, summary = evaluation_truth.write_pseudo_label_errors(
+        fit_dir, evaluation_truth.load_ground_truth(config["ground_truth"]), load_rig(config["asset"]), out_dir)
     return {"stage": "pseudo_labels", "files": [str(path)], "content_hash": shards.content_hash([path]), **summary}
 
 

@@ -83,13 +83,13 @@ def _check_inputs(p: Mapping[str, Any]) -> list[Path]:
 def filter_precision_check(fit_dir: str, filter_dir: str, errors_file: str, out_dir: str,
                            config: Mapping[str, Any]) -> dict:
     """Precision / recall of the kept fits against the hidden truth (``pseudo_labels.filter_precision``): the
-    pseudo-label errors ``errors_file`` (``bat3r_core.evaluation.write_pseudo_label_errors``), the rest pose's
+    pseudo-label errors ``errors_file`` (``bat3r_core.evaluation_truth.write_pseudo_label_errors``), the rest pose's
     errors (``pseudo_labels.rest_pose_errors``) and the filter shards of ``filter_dir`` →
     ``out_dir/pseudo_label_filter.json``. config: ``{"asset", "ground_truth" (the collection's
     ground_truth.npz)}``. Returns ``stage, files, content_hash`` and the figures."""
     import pyarrow.parquet as pq
 
-    from bat3r_core.evaluation import load_ground_truth
+    from bat3r_core.evaluation_truth import load_ground_truth
     from bat3r_core.rig_io import load_rig
 
     errors = pq.read_table(errors_file).to_pylist()

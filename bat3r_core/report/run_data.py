@@ -11,7 +11,7 @@ from typing import Callable, Sequence
 import numpy as np
 import pyarrow as pa
 
-from bat3r_core import evaluation, evaluation_masks, shards, stages
+from bat3r_core import evaluation, evaluation_masks, evaluation_truth, shards, stages
 from bat3r_core.report.inputs import QUALITATIVE_FILE
 
 FIT_STAGE = stages.stage(stages.FIT).folder
@@ -84,7 +84,7 @@ def _load(run_dir: Path) -> _RunData:
     for it, d in evaluation.iteration_dirs(run_dir):
         t = _guarded(f"iteration {it} fit rows", lambda: shards.read_table(d / FIT_STAGE), None, errors)
         if t is not None and t.num_rows:
-            errs = d / evaluation.EVALUATE_STAGE / evaluation.PSEUDO_LABEL_FILE
+            errs = d / evaluation.EVALUATE_STAGE / evaluation_truth.PSEUDO_LABEL_FILE
             if errs.is_file():  # pose errors against the hidden ground truth (evaluation stage)
                 t = _guarded(f"iteration {it} pseudo-label errors", lambda: join_pose_errors(t, errs), t, errors)
             fits[it] = t

@@ -8,6 +8,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from bat3r_core import evaluation as E
+from bat3r_core import evaluation_truth as T
 from bat3r_core.metrics import SampleMetrics
 
 
@@ -126,7 +127,7 @@ def test_pseudo_label_errors_zero_for_the_true_pose_and_blind_to_global_placemen
     fitted[2, toy_rig.joint_index("forearm.L")] += [0.6, 0.0, 0.0]  # a real pose error on sample 2
     rows = [{"sample_id": f"s{i}", "status": "ok", "excess_rotations": fitted[i].ravel().tolist()} for i in range(3)]
     rows.append({"sample_id": "s9", "status": "too_few_points", "excess_rotations": []})
-    out = {r["sample_id"]: r for r in E.pseudo_label_errors(rows, gt, toy_rig)}
+    out = {r["sample_id"]: r for r in T.pseudo_label_errors(rows, gt, toy_rig)}
     assert set(out) == {"s0", "s1", "s2"}
     for s in ("s0", "s1"):
         assert out[s]["vertex_err_cm"] < 1e-6 and out[s]["joint_err_cm"] < 1e-6 and out[s]["angle_err_deg"] < 1e-6
@@ -137,9 +138,9 @@ def test_pseudo_label_errors_zero_for_the_true_pose_and_blind_to_global_placemen
     stored = [{**r, "reason": ""} for r in rows]
     write_shard(tmp_path / "fit", 0, stored[:3])
     write_shard(tmp_path / "fit", 1, stored[3:])
-    path, summary = E.write_pseudo_label_errors(tmp_path / "fit", gt, toy_rig, tmp_path / "evaluate")
+    path, summary = T.write_pseudo_label_errors(tmp_path / "fit", gt, toy_rig, tmp_path / "evaluate")
     table = pq.read_table(path).to_pylist()
-    assert path.name == E.PSEUDO_LABEL_FILE and sorted(r["sample_id"] for r in table) == ["s0", "s1", "s2"]
+    assert path.name == T.PSEUDO_LABEL_FILE and sorted(r["sample_id"] for r in table) == ["s0", "s1", "s2"]
     assert summary["n"] == 3
     assert summary["vertex_err_cm"] == pytest.approx(out["s2"]["vertex_err_cm"] / 3, rel=1e-9, abs=1e-9)
 
@@ -152,7 +153,7 @@ def test_ground_truth_camera_sees_the_photo_through_the_crop():
     photo = PinholeCamera.from_fov(40.0, 120, 90, R=R, t=t, cx=57.0, cy=48.0)
     truth = {"K": photo.K, "camera_rotation": R, "camera_translation": t}
     crop = CropTransform(x0=10.0, y0=-5.0, size=80.0, resolution=64)
-    cam = E.ground_truth_camera(truth, crop)
+    cam = T.ground_truth_camera(truth, crop)
     points = np.random.default_rng(0).uniform(-0.5, 0.5, (50, 3))
     uv_crop, depth = cam.project(points)
     uv_photo, depth_photo = photo.project(points)

@@ -133,7 +133,7 @@ def test_filter_precision_against_a_known_truth(toy_rig):
     with pytest.raises(ValueError, match="filter_rows lack samples"):
         PL.filter_precision(errors, rest, kept[:2])
     # the rest-pose errors are the evaluation's pseudo-label errors of θ = 0: a true fit beats them
-    from bat3r_core.evaluation import pseudo_label_errors
+    from bat3r_core.evaluation_truth import pseudo_label_errors
     from bat3r_core.poses import sample_toy_natural_poses
 
     theta, _ = sample_toy_natural_poses(2, seed=7)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from bat3r_core import evaluation, shards
+from bat3r_core import evaluation_truth, shards
 from bat3r_core.rig_io import load_rig, save_rig_glb
 from bat3r_core.runs import RunLayout
 from bat3r_core.toy import toy_coat_texture
@@ -74,7 +74,7 @@ def test_a_generated_collection_of_another_rig_has_the_toy_layout(prefect_harnes
             near = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
             assert near[rows, cols].mean() > 0.95  # the hidden posed mesh is what was rendered
     # evaluation reads it unchanged; the asset rendered is beside it, with the category's joints
-    assert set(evaluation.load_ground_truth(truth / "ground_truth.npz")) == set(ids)
+    assert set(evaluation_truth.load_ground_truth(truth / "ground_truth.npz")) == set(ids)
     (asset,) = truth.glob("*.glb")
     assert load_rig(asset).joint_names == names
     stamp = json.loads((truth / "collection.json").read_text())["params"]

@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pyarrow.parquet as pq
 
-from bat3r_core import pseudo_labels as PL
 from bat3r_core import shards
 from bat3r_core.predictor.infer import DualClouds, clouds_path, save_clouds
 from bat3r_core.rig_io import save_rig_glb
@@ -95,7 +94,7 @@ def test_filter_cache_key_covers_the_fit_shards_and_the_filter_config(tmp_path, 
 
 
 def test_precision_check_task_against_the_truth(tmp_path, toy_rig):
-    from bat3r_core.evaluation import write_pseudo_label_errors
+    from bat3r_core.evaluation_truth import write_pseudo_label_errors
     from bat3r_core.poses import sample_toy_natural_poses
 
     asset, fit_dir, infer_dir = _setup(tmp_path, toy_rig)
