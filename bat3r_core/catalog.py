@@ -49,7 +49,8 @@ class CollectionSpec:
     Attributes:
         kind: ``folder`` (``images/`` + ``masks/`` with matching stems), ``parquet`` (an index with
             ``image_path``, ``mask_path``) or ``generated`` (synthesised on first use from the category's own rig:
-            posed, yawed, framed by the camera prior, textured; :func:`bat3r_core.datasets.make_collection`).
+            posed, yawed, framed by the camera prior, textured;
+            :func:`bat3r_core.generated_collections.make_collection`).
         path: the folder or Parquet index (relative to the catalog file), or where a generated collection is cached.
         n: number of images of a generated collection (0 = the run preset's size).
         seed: seed of a generated collection.

@@ -268,7 +268,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 def _cmd_collection_toy(args: argparse.Namespace) -> int:
     from .catalog import load_catalog
-    from .datasets import collection_toy_command
+    from .generated_collections import collection_toy_command
 
     catalog = load_catalog(args.catalog)
     col = collection_toy_command(args.n, args.out, seed=args.seed, resolution=args.resolution,

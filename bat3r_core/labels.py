@@ -4,7 +4,7 @@ What the Blender worker renders and what its shard's P/Q/occupancy say must be t
 the armature so Blender's mesh equals :mod:`bat3r_core.skinning` (docs/rendering.md), and the labels ray-cast that
 very skinned mesh (:func:`posed_vertices`) with :func:`bat3r_core.pointmaps.dual_point_maps`. The raw-image baseline
 labels the collection's own crops the same way through their recovered cameras
-(:func:`bat3r_core.datasets.raw_image_shard`).
+(:func:`bat3r_core.raw_images.raw_image_shard`).
 """
 from __future__ import annotations
 

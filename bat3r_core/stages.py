@@ -81,7 +81,7 @@ class Stage:
 STAGES: tuple[Stage, ...] = (
     # name                  bat3r_core function                                  task (tasks/*.py)
     #                       inputs                                               folder, ...
-    Stage("generated_collection", "bat3r_core.datasets:ensure_collection", "tasks.render:render_generated_collection",
+    Stage("generated_collection", "bat3r_core.generated_collections:ensure_collection", "tasks.render:render_generated_collection",
           (), "", scope="external", noun="renders"),
     Stage("collection", "bat3r_core.predictor.collection:write_collection_shard",
           "tasks.predict:ingest_collection_shard",
@@ -102,7 +102,7 @@ STAGES: tuple[Stage, ...] = (
           ("fit", "filter", "pseudo_labels"), "evaluate"),
     Stage("plan_views", "bat3r_core.fitting.augment:plan_views_for_fits", "tasks.plan:plan_views_shard",
           ("fit", "filter"), "plan", noun="render jobs"),
-    Stage("raw_images", "bat3r_core.datasets:raw_image_shard", "tasks.raw_images:raw_image_shard",
+    Stage("raw_images", "bat3r_core.raw_images:raw_image_shard", "tasks.raw_images:raw_image_shard",
           ("fit", "collection"), "render", noun="renders"),
     Stage("render", "bat3r_core.render.runner:render_shard", "tasks.render:render_shard",
           ("plan",), "render", noun="renders"),

@@ -7,7 +7,7 @@ schedule — the same training compute as the loop's Φ_1 … Φ_n — on two fi
 
 * control: the canonical renders of iteration 0 (rest pose only): what the loop must beat;
 * oracle: the collection's own images labelled with their hidden truth (true pose and camera, ray-cast through
-  the collection's crop; ``bat3r_core.datasets.raw_image_shard``): what perfect fits would give, on exactly the
+  the collection's crop; ``bat3r_core.raw_images.raw_image_shard``): what perfect fits would give, on exactly the
   images the test split is drawn like — an upper reference for any pseudo-labelling at this compute.
 
 Every round is evaluated on the same test split with the same metrics as the loop (``bat3r_core.evaluation``),

@@ -121,8 +121,8 @@ def _texture(catalog_dir: Path, t: str) -> str:
 def _collection(cat, spec, size: int, resolution: int, assets: SceneAssets, body_frame: dict[str, Any],
                 generated_seed_offset: int = 0) -> dict[str, Any] | None:
     """The resolved collection (or test split) of a category; a ``generated`` one also carries what
-    ``bat3r_core.datasets.make_collection`` renders it from: the asset (None: the embedded toy, built in-process),
-    the body frame, the category's textures (``()``: the asset's own embedded texture), environment maps, the
+    ``bat3r_core.generated_collections.make_collection`` renders it from: the asset (None: the embedded toy, built
+    in-process), the body frame, the category's textures (``()``: the asset's own embedded texture), environment maps, the
     pose sampler (``toy_natural`` for the toy, ``random`` otherwise, unless the spec names one) and the sample-id
     prefix (the category name)."""
     if spec is None:

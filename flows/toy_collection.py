@@ -1,7 +1,7 @@
 """``toy_collection`` flow: a category's image collection and test split → preprocessed shards of a run.
 
 For a ``generated`` collection (the embedded ``toy``'s, or any category's: its own rig posed, yawed, framed and
-textured, ``bat3r_core.datasets.make_collection``) the images are rendered first (Blender, cached by their
+textured, ``bat3r_core.generated_collections.make_collection``) the images are rendered first (Blender, cached by their
 parameters); for a user's folder/Parquet collection they are listed. Either way the images are cropped around
 their masks into ``<run>/collection`` and ``<run>/test`` shards at the model resolution (the predictor's input).
 Dropped renders and bad images are reported like any stage's dropped samples (``flows._fanout.report_drops``).

@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping
 
-from bat3r_core import datasets, shards
+from bat3r_core import raw_images, shards
 from bat3r_core.rig_io import load_rig
 from bat3r_core.runs import shard_record
 from tasks._cache import shard_input_files, stage_task
@@ -19,6 +19,6 @@ __all__ = ["raw_image_shard"]
 def raw_image_shard(asset: str, fit_dir: str, collection_dir: str, index: int, out_dir: str,
                     config: Mapping[str, Any]) -> dict:
     """Training shard ``index`` of ``out_dir`` from collection shard ``index`` and fit shard ``index``
-    (``bat3r_core.datasets.raw_image_shard``). config: ``{"layers": K}``. Returns the shard record."""
-    paths = datasets.raw_image_shard(load_rig(asset), fit_dir, collection_dir, index, out_dir, int(config["layers"]))
+    (``bat3r_core.raw_images.raw_image_shard``). config: ``{"layers": K}``. Returns the shard record."""
+    paths = raw_images.raw_image_shard(load_rig(asset), fit_dir, collection_dir, index, out_dir, int(config["layers"]))
     return shard_record("raw_images", index, paths)

@@ -7,7 +7,7 @@ from typing import Any, Mapping
 
 from prefect.logging import get_run_logger
 
-from bat3r_core import datasets, shards
+from bat3r_core import generated_collections, shards
 from bat3r_core.config_utils import from_mapping
 from bat3r_core.render import runner
 from bat3r_core.render.config import RenderConfig, SceneAssets
@@ -59,15 +59,15 @@ def _collection_inputs(config: Mapping[str, Any]) -> list[Path]:
             output=lambda p: Path(p["out_dir"]), retries=1, task_run_name="generated-collection")
 def render_generated_collection(out_dir: str, config: Mapping[str, Any]) -> dict:
     """A generated image collection in ``out_dir`` (``images/``, ``masks/``) and its hidden ground truth in
-    ``config["ground_truth_dir"]`` (default ``<out_dir>_ground_truth``) with ``bat3r_core.datasets.ensure_collection``
-    (reused when already there).
+    ``config["ground_truth_dir"]`` (default ``<out_dir>_ground_truth``) with
+    ``bat3r_core.generated_collections.ensure_collection`` (reused when already there).
 
     config: ``{"n", "seed", "resolution", "render": RenderConfig mapping, "ground_truth_dir": path or None}`` plus,
     for any rig but the embedded toy, ``"asset"`` (the rigged GLB), ``"body_frame"``, ``"textures"`` (``[]``: the
     asset's own texture), ``"envmaps"``, ``"prefix"``; and ``"pose_sampler"`` (``random`` / ``toy_natural``).
     Returns ``stage, images_dir, masks_dir, ground_truth_dir, n_images, reused, files, content_hash`` and the
-    render counts of ``bat3r_core.datasets.collection_drops_record`` (``n_rows`` jobs, ``n_ok`` images kept,
-    ``n_failed``, ``failed_samples``, ``status_counts``, ``status_examples``).
+    render counts of ``bat3r_core.generated_collections.collection_drops_record`` (``n_rows`` jobs, ``n_ok`` images
+    kept, ``n_failed``, ``failed_samples``, ``status_counts``, ``status_examples``).
     """
     cfg = from_mapping(RenderConfig, config["render"], "render")
     extra = {k: config[k] for k in ("asset", "body_frame", "envmaps", "pose_sampler", "prefix")
@@ -76,10 +76,11 @@ def render_generated_collection(out_dir: str, config: Mapping[str, Any]) -> dict
         extra["textures"] = tuple(config["textures"])
     if "envmaps" in extra:
         extra["envmaps"] = tuple(extra["envmaps"])
-    col = datasets.ensure_collection(out_dir, int(config["n"]), int(config["seed"]), int(config["resolution"]),
-                                     cfg, ground_truth_dir=config.get("ground_truth_dir"), **extra)
+    col = generated_collections.ensure_collection(out_dir, int(config["n"]), int(config["seed"]),
+                                                  int(config["resolution"]), cfg,
+                                                  ground_truth_dir=config.get("ground_truth_dir"), **extra)
     stamp = col.ground_truth_dir / "collection.json"
-    counts = datasets.collection_drops_record(col)
+    counts = generated_collections.collection_drops_record(col)
     return {**{k: counts[k] for k in ("n_rows", "n_ok", "n_failed", "failed_samples", "status_counts",
                                       "status_examples")},
             "stage": "generated_collection", "images_dir": str(col.images_dir), "masks_dir": str(col.masks_dir),

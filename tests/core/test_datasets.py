@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from bat3r_core.datasets import (TOY_TEST_SEED_OFFSET, canonical_jobs, make_toy_collection, random_pose_jobs,
-                                 toy_collection_jobs)
+from bat3r_core.datasets import canonical_jobs, random_pose_jobs, toy_collection_jobs
+from bat3r_core.generated_collections import TOY_TEST_SEED_OFFSET, make_toy_collection
 from bat3r_core.poses import sample_random_poses
 from bat3r_core.render.config import RenderConfig
 from bat3r_core.render.jobs import job_to_dict, jobs_from_table, jobs_to_table
@@ -177,7 +177,7 @@ def test_collection_jobs_pose_any_rig_with_random_poses(toy_rig):
 
 
 def test_make_collection_needs_an_existing_asset_and_a_body_frame(tmp_path):
-    from bat3r_core.datasets import make_collection
+    from bat3r_core.generated_collections import make_collection
 
     with pytest.raises(FileNotFoundError, match=r"asset .*missing.glb does not exist"):
         make_collection(tmp_path / "c", 2, asset=tmp_path / "missing.glb", body_frame=CRITTER_FRAME)
