@@ -44,10 +44,12 @@ def demo_figures(rows: list[dict], minutes: float) -> tuple[dict[str, float], st
     return figures, ("met" if ratio <= 0.75 else "NOT met")
 
 
-def control_verdict(last_mcd: float, results_dir: Path = ROOT / "benchmarks" / "results") -> list[str]:
+def control_verdict(last_mcd: float, results_dir: Path = ROOT / "benchmarks" / "results",
+                    canonical_mcd: float | None = None) -> list[str]:
     """What a gain over Φ₀ at the demo's scale does and does not show, with the same-compute references the
     benchmarks measured (``demo_control.json`` of ``bench_demo_control.py``, ``fidelity.json`` of ``make
-    bench-fidelity``) where they exist."""
+    bench-fidelity``) where they exist. canonical_mcd: this run's Φ₀; recorded references that started from another
+    Φ₀ say so (they compare this run with another model's control)."""
     lines = ["A gain over Φ₀ alone does not show that the loop works: Φ₀ trained on for the same steps on its own "
              "canonical renders (the control) improves too, because Φ₀ is under-trained at this scale."]
     control = results_dir / "demo_control.json"
@@ -60,6 +62,10 @@ def control_verdict(last_mcd: float, results_dir: Path = ROOT / "benchmarks" / "
                          + (f", oracle (true labels) {o:.2f} cm" if o is not None else "")
                          + f"; this run's loop {last_mcd:.2f} cm"
                          + (" — at or behind the control." if last_mcd >= c else " — ahead of the control."))
+            start = d.get("mcd_control_cm_iter0")
+            if canonical_mcd is not None and start is not None and abs(float(start) - canonical_mcd) > 0.05:
+                lines.append(f"Those references started from another Φ₀ ({float(start):.2f} cm; this run's: "
+                             f"{canonical_mcd:.2f} cm): make bench-demo measures them from this one.")
     fidelity = results_dir / "fidelity.json"
     if fidelity.is_file():
         d = json.loads(fidelity.read_text())
@@ -113,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n{minutes:.1f} min; mCD canonical {figures['mcd_canonical_cm']:.2f} cm -> iteration "
           f"{figures['iterations']} {figures['mcd_last_cm']:.2f} cm (ratio {figures['mcd_ratio']:.2f}; the method's "
           f"claim at this scale: <= 0.75, {verdict})")
-    for line in control_verdict(figures["mcd_last_cm"]):
+    for line in control_verdict(figures["mcd_last_cm"], canonical_mcd=figures["mcd_canonical_cm"]):
         print(line)
     refusal = record_refusal(args.preset, args.no_record, resumed)
     if refusal:

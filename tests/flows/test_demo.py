@@ -41,3 +41,9 @@ def test_control_verdict_points_at_the_same_compute_references(tmp_path):
     assert "control 10.15 cm, oracle (true labels) 9.96 cm; this run's loop 11.48 cm — at or behind" in lines[1]
     assert "loop 7.10, control 8.00, oracle 6.00 cm" in lines[2]
     assert "ahead of the control" in control_verdict(9.0, tmp_path)[1]
+    # references measured from another Φ₀ say so; from this run's Φ₀ they do not
+    (tmp_path / "demo_control.json").write_text(json.dumps(
+        {"iterations": 2, "mcd_control_cm_iter0": 13.11, "mcd_control_cm_iter2": 10.15}))
+    other = control_verdict(12.04, tmp_path, canonical_mcd=12.92)
+    assert "started from another Φ₀ (13.11 cm; this run's: 12.92 cm): make bench-demo" in other[2]
+    assert not any("another Φ₀" in line for line in control_verdict(12.04, tmp_path, canonical_mcd=13.12))
