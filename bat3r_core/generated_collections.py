@@ -91,7 +91,7 @@ def _load_existing(out_dir: Path, gt_dir: Path, params: dict) -> GeneratedCollec
 
 
 def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolution: int = 128,
-                    config: RenderConfig | str | None = "demo", ground_truth_dir: str | os.PathLike | None = None,
+                    config: RenderConfig | Mapping | None = None, ground_truth_dir: str | os.PathLike | None = None,
                     families: Sequence[str] = TOY_POSE_FAMILIES, prior: CameraPriorConfig | None = None,
                     force: bool = False, *, asset: str | os.PathLike | None = None,
                     body_frame: Mapping | None = None, textures: Sequence[str] | None = None,
@@ -212,7 +212,7 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
 
 
 def make_toy_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolution: int = 128,
-                        config: RenderConfig | str | None = "demo", ground_truth_dir: str | os.PathLike | None = None,
+                        config: RenderConfig | Mapping | None = None, ground_truth_dir: str | os.PathLike | None = None,
                         families: Sequence[str] = TOY_POSE_FAMILIES, prior: CameraPriorConfig | None = None,
                         force: bool = False) -> GeneratedCollection:
     """:func:`make_collection` of the embedded toy in natural poses with its procedural coats (see there for the
@@ -221,7 +221,7 @@ def make_toy_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resol
 
 
 def ensure_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolution: int = 128,
-                      config: RenderConfig | str | None = "demo", **kwargs) -> GeneratedCollection:
+                      config: RenderConfig | Mapping | None = None, **kwargs) -> GeneratedCollection:
     """:func:`make_collection` that reuses a matching cached collection (generated on first use)."""
     return make_collection(out_dir, n, seed, resolution, config, force=False, **kwargs)
 
@@ -236,13 +236,13 @@ def collection_drops_record(collection: GeneratedCollection, stage: str = "gener
 
 
 def ensure_toy_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolution: int = 128,
-                          config: RenderConfig | str | None = "demo", **kwargs) -> GeneratedCollection:
+                          config: RenderConfig | Mapping | None = None, **kwargs) -> GeneratedCollection:
     """:func:`make_toy_collection` that reuses a matching cached collection (generated on first use)."""
     return make_toy_collection(out_dir, n, seed, resolution, config, force=False, **kwargs)
 
 
 def toy_collection_and_test_split(root: str | os.PathLike, n: int, n_test: int, seed: int = 0,
-                                  resolution: int = 128, config: RenderConfig | str | None = "demo"
+                                  resolution: int = 128, config: RenderConfig | Mapping | None = None
                                   ) -> tuple[GeneratedCollection, GeneratedCollection]:
     """The toy category's collection (``root/toy_collection``) and its test split (``root/toy_test``, seed
     ``seed + TOY_TEST_SEED_OFFSET``), each with its ``*_ground_truth`` folder beside it; cached."""
@@ -253,7 +253,7 @@ def toy_collection_and_test_split(root: str | os.PathLike, n: int, n_test: int, 
 
 
 def collection_toy_command(n: int, out: str | os.PathLike, seed: int = 0, resolution: int = 128,
-                           config: RenderConfig | str | None = "demo", force: bool = False) -> GeneratedCollection:
+                           config: RenderConfig | Mapping | None = None, force: bool = False) -> GeneratedCollection:
     """``bat3r collection toy --n N --out DIR``: render (or reuse) a toy collection in ``DIR`` with its ground
     truth in ``DIR_ground_truth``."""
     return make_toy_collection(out, n, seed, resolution, config, force=force)

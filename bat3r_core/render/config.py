@@ -1,16 +1,17 @@
-"""Render settings (:class:`RenderConfig`), named presets, and the scene assets a worker renders with.
+"""Render settings (:class:`RenderConfig`; named ones live in the data catalog) and the scene assets a worker
+renders with.
 
 Pure data, no bpy: the runner, the data catalog and the job builders import this; the worker receives it as JSON.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Literal, Mapping
 
 from bat3r_core.config_utils import ConfigError, from_mapping
 
-__all__ = ["RenderConfig", "RENDER_PRESETS", "render_config", "SceneAssets", "DEVICES"]
+__all__ = ["RenderConfig", "render_config", "SceneAssets", "DEVICES"]
 
 DEVICES = ("CPU", "CUDA", "OPTIX", "HIP", "METAL")
 
@@ -71,38 +72,21 @@ class RenderConfig:
             raise ValueError(f"RenderConfig.device must be one of {DEVICES}, got {self.device!r}")
 
 
-RENDER_PRESETS: dict[str, RenderConfig] = {
-    "test": RenderConfig(resolution=32, samples=2, recycle_every=64, timeout_s=30.0),
-    "tiny": RenderConfig(resolution=64, samples=8),
-    "demo": RenderConfig(resolution=128, samples=16),
-    "paper": RenderConfig(resolution=160, samples=64, denoise=True, filter_width=1.5, recycle_every=500),
-    "paper_gpu": RenderConfig(resolution=160, samples=128, denoise=True, device="OPTIX", filter_width=1.5,
-                              recycle_every=1000),
-}
-"""Named render presets; a data catalog names one (``render: demo``) or gives a mapping (optionally with a
-``preset`` key whose values the other keys override)."""
-
-
-def render_config(value: str | Mapping[str, Any] | RenderConfig | None, path: str = "render") -> RenderConfig:
-    """A :class:`RenderConfig` from a preset name, a mapping (strict, via ``config_utils.from_mapping``; a
-    ``preset`` key picks the base the other keys override), an existing config, or None (the ``demo`` preset)."""
+def render_config(value: Mapping[str, Any] | RenderConfig | None, path: str = "render") -> RenderConfig:
+    """A :class:`RenderConfig` from a mapping (strict, via ``config_utils.from_mapping``), an existing config, or
+    None (the class defaults). Named render settings live in the data catalog only, as each run preset's
+    ``render:`` section (``Catalog.render_config(run)``); a name here is refused with that pointer."""
     if value is None:
-        return RENDER_PRESETS["demo"]
+        return RenderConfig()
     if isinstance(value, RenderConfig):
         return value
     if isinstance(value, str):
-        if value not in RENDER_PRESETS:
-            raise ConfigError(f"{path}: unknown render preset {value!r}; presets: {sorted(RENDER_PRESETS)}")
-        return RENDER_PRESETS[value]
+        raise ConfigError(f"{path}: render settings are not named in code; got {value!r}. Give a mapping of "
+                          "RenderConfig fields, or a run preset's render config: "
+                          f"bat3r_core.catalog.load_catalog().render_config({value!r})")
     if not isinstance(value, Mapping):
-        raise ConfigError(f"{path}: expected a preset name or a mapping, got {type(value).__name__} {value!r}")
-    data = dict(value)
-    base_name = data.pop("preset", None)
-    if base_name is None:
-        return from_mapping(RenderConfig, data, path)
-    base = render_config(base_name, f"{path}.preset")
-    overrides = from_mapping(RenderConfig, data, path)  # validates keys and types
-    return replace(base, **{k: getattr(overrides, k) for k in data})
+        raise ConfigError(f"{path}: expected a mapping of RenderConfig fields, got {type(value).__name__} {value!r}")
+    return from_mapping(RenderConfig, dict(value), path)
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -238,7 +238,7 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
     Args:
         jobs: render jobs (one image each); all must share one image size.
         assets: the category's rigged asset (GLB; FBX/.blend are converted), textures and environment maps.
-        config: a :class:`RenderConfig` or preset name (default ``demo``).
+        config: a :class:`RenderConfig` or a mapping of its fields (default: its defaults).
         rig: the rig of ``assets.asset`` (loaded when None).
         debug_vertices: also store the depsgraph-evaluated posed vertices Blender rendered
             (``blender_vertices (N, V, 3) float32``, bat3r world frame) for checking against skinning.
@@ -364,7 +364,7 @@ def render_jobs(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | o
 
 
 def render_command(jobs: str | os.PathLike, asset: str | os.PathLike, out: str | os.PathLike,
-                   config: RenderConfig | str | None = "demo", textures: Sequence[str] | None = None,
+                   config: RenderConfig | Mapping | None = None, textures: Sequence[str] | None = None,
                    envmaps: Sequence[str] = (), shard_index: int = 0, debug_vertices: bool = False) -> ShardResult:
     """``bat3r render --jobs JOBS.parquet --asset ASSET --out DIR``: render one job file as one shard by hand.
 

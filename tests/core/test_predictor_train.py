@@ -252,14 +252,15 @@ def test_overfits_eight_samples_below_two_centimetres(tmp_path):
 def test_overfits_eight_rendered_toy_samples_below_two_centimetres(tmp_path, toy_rig, torch_single_thread):
     """The acceptance check on real data: 8 Blender renders of the toy with their ray-cast labels (32x32)."""
     from bat3r_core.datasets import canonical_jobs
-    from bat3r_core.render.config import RENDER_PRESETS, SceneAssets
+    from bat3r_core.render.config import RenderConfig, SceneAssets
     from bat3r_core.render.runner import render_shard
     from bat3r_core.rig_io import save_rig_glb
     from bat3r_core.toy import TOY_BODY_FRAME
 
     glb = save_rig_glb(toy_rig, tmp_path / "toy.glb")
     jobs = canonical_jobs(toy_rig, 8, seed=3, body_frame_spec=TOY_BODY_FRAME, resolution=32)
-    render_shard(jobs, SceneAssets(asset=str(glb)), tmp_path / "s", 0, RENDER_PRESETS["test"], rig=toy_rig)
+    config = RenderConfig(resolution=32, samples=2, recycle_every=64, timeout_s=30.0)
+    render_shard(jobs, SceneAssets(asset=str(glb)), tmp_path / "s", 0, config, rig=toy_rig)
     ds = ShardDataset(tmp_path / "s")
     assert len(ds) == 8
     trainer = Trainer(ds, ModelConfig(resolution=32, base_channels=24, depth=2, two_stage=False),

@@ -18,7 +18,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from bat3r_core.config_utils import ConfigError
-from bat3r_core.render.config import RENDER_PRESETS, RenderConfig, SceneAssets, render_config
+from bat3r_core.render.config import RenderConfig, SceneAssets, render_config
 from bat3r_core.render.jobs import (JobSchemaError, RenderJob, job_from_dict, job_to_dict, jobs_from_table,
                                     jobs_to_table, read_jobs, write_jobs)
 from bat3r_core.shards import read_shard
@@ -120,16 +120,21 @@ def test_job_problems_are_reported_not_raised(toy_rig):
     assert "excess_rotations has 27 joints, the rig has 26" in job.problems(26)[0]
 
 
-def test_render_config_presets_and_mapping():
-    assert render_config("paper").resolution == 160
-    assert render_config(None) == RENDER_PRESETS["demo"]
-    cfg = render_config({"preset": "tiny", "samples": 3, "denoise": True})
-    assert (cfg.resolution, cfg.samples, cfg.denoise) == (RENDER_PRESETS["tiny"].resolution, 3, True)
+def test_render_config_from_mappings_and_the_catalog_only():
+    assert render_config(None) == RenderConfig() and (RenderConfig().resolution, RenderConfig().samples) == (128, 16)
+    cfg = render_config({"samples": 3, "denoise": True})
+    assert (cfg.resolution, cfg.samples, cfg.denoise) == (128, 3, True)
     assert render_config({"resolution": 48}).resolution == 48
     with pytest.raises(ConfigError, match="render: unknown key\\(s\\) \\['sampels'\\]"):
         render_config({"sampels": 3})
-    with pytest.raises(ConfigError, match="unknown render preset 'huge'"):
-        render_config("huge")
+    with pytest.raises(ConfigError, match=r"not named in code; got 'paper'.*render_config\('paper'\)"):
+        render_config("paper")
+    # named settings are the catalog's run presets, with the run's image size and the catalog's K
+    from bat3r_core.catalog import load_catalog
+
+    catalog = load_catalog(Path(__file__).resolve().parents[2] / "data_catalog.yaml")
+    paper = catalog.render_config("paper")
+    assert (paper.resolution, paper.samples, paper.denoise, paper.num_layers) == (160, 64, True, catalog.layers)
     with pytest.raises(ValueError, match="RenderConfig.device must be one of"):
         RenderConfig(device="TPU")
     with pytest.raises(ValueError, match="RenderConfig.samples must be >= 1, got 0"):
