@@ -1,6 +1,7 @@
 """Features stage: image features of one rendered (or collection) shard → one feature shard."""
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -11,13 +12,22 @@ from tasks._cache import shard_input_files, stage_task
 
 __all__ = ["extract_features_shard"]
 
+_PCA_LOCK = threading.Lock()
+
 
 @stage_task("features", inputs=lambda p: shard_input_files(p["input_dir"], p["index"]),
             output=lambda p: Path(p["out_dir"]) / f"part-{p['index']:05d}")
 def extract_features_shard(input_dir: str, index: int, out_dir: str, config: Mapping[str, Any]) -> dict:
     """Features (``bat3r_core.predictor.features.extract_feature_shard``) of shard ``index`` of ``input_dir``
-    (npz ``rgb``/``mask``) into shard ``index`` of ``out_dir``. config: a ``FeatureConfig`` mapping.
+    (npz ``rgb``/``mask``) into shard ``index`` of ``out_dir``. config: a ``FeatureConfig`` mapping. For ``dinov2``
+    without a fitted PCA, the PCA is first fitted on all shards of ``input_dir`` (``fit_pca_from_shards``).
     Returns the shard record (``bat3r_core.runs.shard_record``)."""
     cfg = from_mapping(features.FeatureConfig, config, "features")
+    if cfg.extractor == "dinov2":
+        # the PCA is fitted once, on every shard of the stage's input folder (all rendered before the stage fans out),
+        # not on whichever shard's task happens to start first: the same PCA whatever the order, and one fit per
+        # process (a second process fitting at the same time computes the same one)
+        with _PCA_LOCK:
+            features.fit_pca_from_shards([input_dir], cfg)
     paths = features.extract_feature_shard(input_dir, index, out_dir, cfg)
     return shard_record("features", index, paths)
