@@ -10,10 +10,14 @@ PYTEST_ARGS ?= -n 2 --dist loadfile --durations=25
 
 .PHONY: install test demo bench bench-demo bench-fidelity server server-stop clean browser-deps system-libs
 
+# pip's own output (warnings included) goes to $(INSTALL_LOG), not the first screen; a failed step prints its tail.
+INSTALL_LOG := $(VENV)/install.log
+QUIET_PIP = { $(PIP) install --quiet $(1) >>$(INSTALL_LOG) 2>&1 || { tail -n 40 $(INSTALL_LOG); echo "pip install $(1) failed (log: $(INSTALL_LOG))"; exit 1; }; }
+
 $(PY):
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "bat3r needs Python 3.11 ($(PYTHON) not found; set PYTHON=...)"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
-	$(PIP) install --quiet --upgrade pip
+	@$(call QUIET_PIP,--upgrade pip)
 
 # CPU-only machines take the CPU build of torch first (an unpinned torch would pull multi-GB CUDA wheels);
 # machines with an NVIDIA driver let pip resolve torch's default (CUDA) build through the project requirement.
@@ -22,9 +26,10 @@ $(STAMP): pyproject.toml | $(PY)
 		echo "NVIDIA GPU found: installing the default torch build"; \
 	else \
 		echo "no GPU: installing torch==$(TORCH_VERSION) (CPU)"; \
-		$(PIP) install --quiet torch==$(TORCH_VERSION); \
+		$(call QUIET_PIP,torch==$(TORCH_VERSION)); \
 	fi
-	$(PIP) install --quiet -e ".[test]"
+	@echo "installing bat3r and its dependencies into $(VENV) (log: $(INSTALL_LOG))"
+	@$(call QUIET_PIP,-e ".[test]")
 	@touch $(STAMP)
 
 install: $(STAMP) system-libs
