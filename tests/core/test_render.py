@@ -355,9 +355,9 @@ def test_render_command_renders_a_job_file(tmp_path, toy_rig, toy_glb):
     jobs = [_job(toy_rig, f"s{i}", theta, 24, azimuth=30.0 + 90 * i, texture_id=i, seed=i) for i in range(2)]
     write_jobs(jobs, tmp_path / "jobs.parquet")
     # without textures only texture_id 0 (the asset's own) exists: job s1 is refused
-    own = render_command(tmp_path / "jobs.parquet", toy_glb, tmp_path / "own", config="test")
+    own = render_command(tmp_path / "jobs.parquet", toy_glb, tmp_path / "own", config=TINY)
     assert own.num_ok == 1 and read_shard(tmp_path / "own", 0)[0].column("status").to_pylist() == ["ok", "bad_texture"]
-    result = render_command(tmp_path / "jobs.parquet", toy_glb, tmp_path / "out", config="test",
+    result = render_command(tmp_path / "jobs.parquet", toy_glb, tmp_path / "out", config=TINY,
                             textures=["toy:bay", "toy:grey"])
     assert result.parquet == tmp_path / "out" / "part-00000.parquet" and result.num_ok == 2
     table, arrays = read_shard(tmp_path / "out", 0)
