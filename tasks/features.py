@@ -1,7 +1,6 @@
 """Features stage: image features of one rendered (or collection) shard → one feature shard."""
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -11,8 +10,6 @@ from bat3r_core.runs import shard_record
 from tasks._cache import shard_input_files, stage_task
 
 __all__ = ["extract_features_shard"]
-
-_PCA_LOCK = threading.Lock()
 
 
 @stage_task("features", inputs=lambda p: shard_input_files(p["input_dir"], p["index"]),
@@ -25,9 +22,7 @@ def extract_features_shard(input_dir: str, index: int, out_dir: str, config: Map
     cfg = from_mapping(features.FeatureConfig, config, "features")
     if cfg.extractor == "dinov2":
         # the PCA is fitted once, on every shard of the stage's input folder (all rendered before the stage fans out),
-        # not on whichever shard's task happens to start first: the same PCA whatever the order, and one fit per
-        # process (a second process fitting at the same time computes the same one)
-        with _PCA_LOCK:
-            features.fit_pca_from_shards([input_dir], cfg)
+        # not on whichever shard's task happens to start first: the same PCA whatever the order
+        features.fit_pca_once([input_dir], cfg)
     paths = features.extract_feature_shard(input_dir, index, out_dir, cfg)
     return shard_record("features", index, paths)

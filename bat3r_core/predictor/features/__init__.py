@@ -18,6 +18,7 @@ computes into a new folder and an unchanged one reuses earlier results.
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
 from typing import Callable
 
@@ -38,7 +39,7 @@ __all__ = ["IMAGENET_MEAN", "IMAGENET_STD", "Dinov2Options", "FeatureConfig", "F
            "resolve_device", "FeatureExtractor", "register_extractor", "get_extractor", "available_extractors",
            "RGBExtractor", "FeaturePCA", "fit_feature_pca", "save_pca", "load_pca", "load_dinov2", "Dinov2Extractor",
            "sample_keys", "feature_config_hash", "extract_features", "extract_grids", "grid_features",
-           "make_feature_fn", "fit_pca_from_shards", "extract_feature_shard"]
+           "make_feature_fn", "fit_pca_from_shards", "fit_pca_once", "extract_feature_shard"]
 
 register_extractor(RGBExtractor())
 register_extractor(Dinov2Extractor())
@@ -165,6 +166,17 @@ def fit_pca_from_shards(shard_dirs: list[str | os.PathLike], cfg: FeatureConfig,
     if not rgbs or sum(len(r) for r in rgbs) == 0:
         raise ValueError(f"no ok samples in shard folders {[str(d) for d in shard_dirs]} to fit the PCA on")
     return ext.fit_pca(np.concatenate(rgbs), np.concatenate(masks), cfg)
+
+
+_PCA_LOCK = threading.Lock()
+
+
+def fit_pca_once(shard_dirs: list[str | os.PathLike], cfg: FeatureConfig) -> FeaturePCA:
+    """:func:`fit_pca_from_shards` under a process-wide lock: concurrent callers (the tasks of one features stage)
+    fit the ``dinov2`` PCA once and the others load it. A second process fitting at the same time computes the same
+    PCA from the same shards (deterministic subset and seed) and writes it atomically."""
+    with _PCA_LOCK:
+        return fit_pca_from_shards(shard_dirs, cfg)
 
 
 def extract_feature_shard(collection_shard_dir: str | os.PathLike, index: int, out_dir: str | os.PathLike,
