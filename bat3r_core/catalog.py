@@ -170,6 +170,7 @@ class RunPreset:
         collection_size: size of generated collections (toy).
         test_size: size of generated test splits (toy).
         views_per_fit_max: cap of augmented views per fitted image (the paper: 2).
+        infer_batch_size: images per inference forward pass (collection and test predictions).
         render: render settings (a mapping checked against the render worker's config).
         model: network settings (checked against the predictor's ModelConfig).
         train: training settings (checked against the predictor's TrainConfig).
@@ -192,6 +193,7 @@ class RunPreset:
     fitting: dict[str, Any] = field(default_factory=dict)
     features: str = "rgb"
     views_per_fit_max: int = 2
+    infer_batch_size: int = 16
     pseudo_label_filter: dict[str, Any] = field(default_factory=dict)
     name: str = ""
 

@@ -1,8 +1,9 @@
 """Resolve a run's settings from the data catalog, a run preset, dotted overrides and the paper's ablation switches.
 
 The result (``RunSettings``) holds one typed config per stage plus the run-level numbers; ``to_mapping()`` is the
-JSON written to ``manifest.json`` and the per-stage mappings are what the tasks receive (and hash into their cache
-keys), so a changed setting recomputes exactly the stages it reaches.
+JSON written to ``manifest.json``. ``stage_specs`` cuts it into the typed spec of each stage task
+(``bat3r_core.specs``), which the tasks receive and hash into their cache keys, so a changed setting recomputes
+exactly the stages it reaches.
 
 Overrides are ``{"<section>.<key>[.<key>...]": value}`` with sections ``render``, ``model``, ``train``,
 ``features``, ``fitting``, ``camera_prior``, ``pseudo_label_filter`` (stage configs) and ``run`` (fields of the run preset, e.g.
@@ -18,15 +19,18 @@ from typing import Any, Mapping
 
 from bat3r_core.catalog import Catalog, default_catalog_path, load_catalog
 from bat3r_core.config_utils import ConfigError, replace_path, to_mapping
+from bat3r_core.fitting.augment import AugmentConfig
 from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.features import FeatureConfig
 from bat3r_core.pseudo_labels import PseudoLabelFilterConfig
 from bat3r_core.render.config import RenderConfig, SceneAssets
 from bat3r_core.runs import RunLayout, read_manifest
+from bat3r_core.specs import (CollectionEvaluationSpec, CropCamera, EvaluateSpec, FitSpec, InferSpec, PlanViewsSpec,
+                              RawImagesSpec, RenderSpec, SampledPlanSpec, TrainSpec, TruthSpec)
 from bat3r_core.viewpoints import AnglePrior, CameraPriorConfig, ViewTypePrior
 
-__all__ = ["Ablations", "RunSettings", "resolve_run", "recorded_run"]
+__all__ = ["Ablations", "RunSettings", "StageSpecs", "resolve_run", "stage_specs", "recorded_run"]
 
 _SECTIONS = ("render", "model", "train", "features", "fitting", "camera_prior", "pseudo_label_filter", "run")
 
@@ -71,6 +75,7 @@ class RunSettings:
     collection_size: int
     test_size: int
     views_per_fit_max: int
+    infer_batch_size: int
     max_failed_fraction: float
     render: RenderConfig
     model: ModelConfig
@@ -217,12 +222,89 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
         layout=RunLayout(catalog.storage(), category, run_name), category=category, preset=preset,
         iterations=run.iterations, image_size=run.image_size, layers=catalog.layers, shard_size=shard_size,
         canonical_samples=run.canonical_samples, collection_size=run.collection_size, test_size=run.test_size,
-        views_per_fit_max=run.views_per_fit_max, max_failed_fraction=mff, assets=assets,
+        views_per_fit_max=run.views_per_fit_max, infer_batch_size=run.infer_batch_size, max_failed_fraction=mff, assets=assets,
         body_frame=body_frame,
         collection=_collection(cat, cat.collection, run.collection_size, run.image_size, assets, body_frame),
         test_split=_collection(cat, cat.test_split, run.test_size, run.image_size, assets, body_frame),
         ablations=ablations, catalog_file=str(Path(catalog.path).resolve()),
         source_asset=cat.asset if cat.is_generated else str(cat.resolve(cat.asset)), **configs)
+
+
+@dataclass(frozen=True)
+class StageSpecs:
+    """The typed spec of every stage task of one iteration (``bat3r_core.specs``), cut from a run's settings by
+    :func:`stage_specs`: the one place settings become what the tasks receive. ``pseudo_label_truth`` is the
+    collection's hidden truth (None without one: no ``pseudo_labels`` / ``filter_check`` stage); ``evaluate`` the
+    test split's (None: no per-sample evaluation). The evaluation specs take the iteration from
+    :meth:`evaluate_at` / :meth:`collection_evaluation_at`."""
+
+    plan: SampledPlanSpec
+    render: RenderSpec
+    features: FeatureConfig
+    train: TrainSpec
+    infer: InferSpec
+    fit: FitSpec
+    filter: PseudoLabelFilterConfig
+    plan_views: PlanViewsSpec
+    raw_images: RawImagesSpec
+    pseudo_label_truth: TruthSpec | None
+    evaluate: EvaluateSpec | None
+    asset: str
+
+    def evaluate_at(self, iteration: int) -> EvaluateSpec:
+        if self.evaluate is None:
+            raise ValueError("the test split has no ground truth: there is no evaluate spec")
+        return dataclasses.replace(self.evaluate, iteration=int(iteration))
+
+    def collection_evaluation_at(self, iteration: int) -> CollectionEvaluationSpec:
+        return CollectionEvaluationSpec(asset=self.asset, iteration=int(iteration))
+
+    def train_from(self, init_from: str | None) -> TrainSpec:
+        """The train spec warm-started from ``init_from`` (None: from scratch)."""
+        return dataclasses.replace(self.train, init_from=init_from)
+
+
+def stage_specs(settings: RunSettings, seed: int) -> StageSpecs:
+    """The stage specs of one iteration of the run ``settings`` describe; ``seed``: the iteration's seed (the run
+    seed plus the iteration)."""
+    asset = settings.assets.asset
+    truth = _truth_file(settings.collection)
+    gt = _truth_file(settings.test_split, must_exist=False)
+    prior = settings.camera_prior
+    return StageSpecs(
+        plan=SampledPlanSpec(kind="random_pose" if settings.ablations.random_poses else "canonical",
+                             n=settings.canonical_samples, seed=seed, resolution=settings.image_size,
+                             shard_size=settings.shard_size, body_frame=dict(settings.body_frame), prior=prior,
+                             num_textures=settings.assets.num_textures, num_envmaps=len(settings.assets.envmaps)),
+        render=RenderSpec(render=settings.render, assets=settings.assets),
+        features=settings.features,
+        train=TrainSpec(model=settings.model, train=settings.train, features=settings.features),
+        infer=InferSpec(features=settings.features, batch_size=settings.infer_batch_size),
+        fit=FitSpec(fitting=settings.fitting,
+                    camera=CropCamera(fov_deg=prior.fov_deg, resolution=settings.image_size),
+                    geodesic_cache=str(settings.layout.storage_root / "_cache" / "geodesics")),
+        filter=settings.pseudo_label_filter,
+        plan_views=PlanViewsSpec(
+            augment=AugmentConfig(camera_prior=prior, width=settings.image_size, height=settings.image_size,
+                                  num_textures=settings.assets.num_textures, num_envmaps=len(settings.assets.envmaps),
+                                  augment=not settings.ablations.no_view_augmentation),
+            body_frame=dict(settings.body_frame), seed=seed),
+        raw_images=RawImagesSpec(layers=settings.layers),
+        pseudo_label_truth=None if truth is None else TruthSpec(asset=asset, ground_truth=truth),
+        evaluate=None if gt is None else EvaluateSpec(asset=asset, ground_truth=gt,
+                                                      body_frame=dict(settings.body_frame), split="test",
+                                                      iteration=0, seed=seed),
+        asset=asset)
+
+
+def _truth_file(split: Mapping[str, Any] | None, must_exist: bool = True) -> str | None:
+    """The ``ground_truth.npz`` of a split with a hidden truth (a generated collection): None without one, or,
+    with ``must_exist``, while the file is not on disk yet."""
+    gt = (split or {}).get("ground_truth")
+    if not gt:
+        return None
+    path = Path(gt) / "ground_truth.npz"
+    return str(path) if path.is_file() or not must_exist else None
 
 
 def recorded_run(category: str, run_name: str, catalog: Catalog | str | os.PathLike | None = None

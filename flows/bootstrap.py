@@ -50,13 +50,12 @@ from bat3r_core.stages import (COLLECTION, COLLECTION_INFER, EVALUATE, EVALUATE_
                                TEST_INFER, TRAIN)
 from bat3r_core.catalog import default_catalog_path
 from bat3r_core.cli import add_bootstrap_arguments, bootstrap_parameters
-from bat3r_core.config_utils import to_mapping
 from bat3r_core.runs import (SampleDrops, SampleNeed, TooFewSamples, TooManyFailedShards, prune_shards,
                              pseudo_label_filter_notes, require_samples, training_need, write_manifest)
 from flows._artifacts import publish_iteration_artifacts
 from flows._fanout import StageResult, artifact_key, run_stage
 from flows._runners import make_task_runner
-from flows._settings import Ablations, RunSettings, resolve_run
+from flows._settings import Ablations, RunSettings, StageSpecs, resolve_run, stage_specs
 from flows.evaluate import evaluate
 from flows.toy_collection import prepare_split
 from tasks._cache import for_run
@@ -65,42 +64,6 @@ __all__ = ["bootstrap", "canonical_initialisation", "refinement_iteration", "run
 
 def _ablations(**switches: bool) -> Ablations:
     return Ablations(**switches)
-
-
-def _stage_configs(settings: RunSettings, seed: int) -> dict[str, Any]:
-    kind = "random_pose" if settings.ablations.random_poses else "canonical"
-    gt = (settings.test_split or {}).get("ground_truth")
-    return {
-        "plan": {"kind": kind, "n": settings.canonical_samples, "seed": seed, "resolution": settings.image_size,
-                 "shard_size": settings.shard_size, "body_frame": settings.body_frame,
-                 "prior": to_mapping(settings.camera_prior), "num_textures": settings.assets.num_textures,
-                 "num_envmaps": len(settings.assets.envmaps)},
-        "render": {"render": to_mapping(settings.render), "assets": to_mapping(settings.assets)},
-        "features": to_mapping(settings.features),
-        "train": {"model": to_mapping(settings.model), "train": to_mapping(settings.train),
-                  "features": to_mapping(settings.features)},
-        "infer": {"features": to_mapping(settings.features), "batch_size": 16},
-        "fit": {"fitting": to_mapping(settings.fitting), "fov_deg": settings.camera_prior.fov_deg,
-                "resolution": settings.image_size,
-                "geodesic_cache": str(settings.layout.storage_root / "_cache" / "geodesics")},
-        "filter": {"filter": to_mapping(settings.pseudo_label_filter)},
-        "plan_views": {"augment": {"camera_prior": to_mapping(settings.camera_prior),
-                                   "width": settings.image_size, "height": settings.image_size,
-                                   "num_textures": settings.assets.num_textures,
-                                   "num_envmaps": len(settings.assets.envmaps),
-                                   "augment": not settings.ablations.no_view_augmentation},
-                       "body_frame": settings.body_frame, "seed": seed},
-        "pseudo_label_truth": _truth_file(settings.collection),
-        "evaluate": None if not gt else {"asset": settings.assets.asset,
-                                         "ground_truth": str(Path(gt) / "ground_truth.npz"),
-                                         "body_frame": settings.body_frame, "split": "test", "seed": seed},
-    }
-
-
-def _truth_file(split: Mapping[str, Any] | None) -> str | None:
-    """The ``ground_truth.npz`` of a split whose hidden truth is on disk (a generated toy collection), else None."""
-    gt = (split or {}).get("ground_truth")
-    return str(Path(gt) / "ground_truth.npz") if gt and (Path(gt) / "ground_truth.npz").is_file() else None
 
 
 def _progress(settings: RunSettings, iteration: int, stage: str) -> str:
@@ -161,14 +124,14 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
     Returns ``{"stages": {stage: [records]}, "states": {stage: [state names]}, "predictor": path, "metrics": rows}``."""
     settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
                            max_failed_fraction=max_failed_fraction)
-    cfg = _stage_configs(settings, seed)
+    cfg = stage_specs(settings, seed)
     it = _Iteration(settings, 0, _data_drops(data_drops))
     if init_predictor is not None:
         get_run_logger().info("iteration 0: Φ_0 from %s (no canonical renders or training)", init_predictor)
         it.notes.append(f"Φ_0 is {init_predictor} (init_predictor): not trained in this run.")
         _evaluate_test(it, cfg, str(init_predictor))
         return _finish_iteration(it, str(init_predictor))
-    plan = it.run(PLAN, [{"asset": settings.assets.asset, "out_dir": it.dir(PLAN), "config": cfg["plan"]}],
+    plan = it.run(PLAN, [{"asset": settings.assets.asset, "out_dir": it.dir(PLAN), "config": cfg.plan}],
                   max_failed_fraction=0.0, needs=training_need(settings.train.batch_size))
     job_files = plan.records[0]["files"]
     for stage in (PLAN, RENDER, FEATURES):  # shards of an earlier, larger plan of this run
@@ -177,35 +140,35 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
     return _train_and_evaluate(it, cfg, None)
 
 
-def _evaluate_collection(it: _Iteration, cfg: dict[str, Any], predictor: str) -> None:
+def _evaluate_collection(it: _Iteration, cfg: StageSpecs, predictor: str) -> None:
     """Φ_iteration on the collection, without 3D ground truth (``bat3r_core.evaluation_masks``): its predictions
     (``iter-ii/evaluate/collection_infer``), then mask IoUs of them and of this iteration's fits (none at 0)."""
     mff, collection_dir = it.settings.max_failed_fraction, it.dir(COLLECTION)
     if not shards.list_shards(collection_dir):
         return
     infer = it.run(COLLECTION_INFER, [{"predictor": predictor, "collection_dir": collection_dir, "index": i,
-                                       "out_dir": it.dir(COLLECTION_INFER), "config": cfg["infer"]}
+                                       "out_dir": it.dir(COLLECTION_INFER), "config": cfg.infer}
                                       for i in shards.list_shards(collection_dir)], max_failed_fraction=mff)
     fit_dir = it.dir(FIT) if it.iteration > 0 else None
     it.run(EVALUATE_COLLECTION,
            [{"predictions_dir": it.dir(COLLECTION_INFER), "index": r["index"], "collection_dir": collection_dir,
              "fit_dir": fit_dir, "out_dir": it.dir(EVALUATE_COLLECTION),
-             "config": {"asset": it.settings.assets.asset, "iteration": it.iteration}} for r in infer.records],
+             "config": cfg.collection_evaluation_at(it.iteration)} for r in infer.records],
            max_failed_fraction=mff)
 
 
-def _evaluate_test(it: _Iteration, cfg: dict[str, Any], predictor: str) -> None:
+def _evaluate_test(it: _Iteration, cfg: StageSpecs, predictor: str) -> None:
     """Φ_iteration on the collection (mask IoUs, :func:`_evaluate_collection`) and on the test split: inference
     shards, then per-sample evaluation rows (needs ground truth)."""
     _evaluate_collection(it, cfg, predictor)
     mff, test_dir = it.settings.max_failed_fraction, it.dir(TEST)
-    if cfg["evaluate"] is None or not shards.list_shards(test_dir):
+    if cfg.evaluate is None or not shards.list_shards(test_dir):
         return
     infer = it.run(TEST_INFER, [{"predictor": predictor, "collection_dir": test_dir, "index": i,
-                                 "out_dir": it.dir(TEST_INFER), "config": cfg["infer"]}
+                                 "out_dir": it.dir(TEST_INFER), "config": cfg.infer}
                                 for i in shards.list_shards(test_dir)], max_failed_fraction=mff)
     it.run(EVALUATE, [{"predictions_dir": it.dir(TEST_INFER), "index": r["index"], "out_dir": it.dir(EVALUATE),
-                       "config": {**cfg["evaluate"], "iteration": it.iteration}} for r in infer.records],
+                       "config": cfg.evaluate_at(it.iteration)} for r in infer.records],
            max_failed_fraction=mff)
 
 
@@ -231,31 +194,30 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
     iterations' data are discarded, as in the paper). Returns like :func:`canonical_initialisation`."""
     settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
                            max_failed_fraction=max_failed_fraction)
-    cfg, mff = _stage_configs(settings, seed + iteration), settings.max_failed_fraction
+    cfg, mff = stage_specs(settings, seed + iteration), settings.max_failed_fraction
     it = _Iteration(settings, iteration)
     need = training_need(settings.train.batch_size)
     infer = it.run(INFER, [{"predictor": predictor, "collection_dir": it.dir(COLLECTION), "index": i,
-                            "out_dir": it.dir(INFER), "config": cfg["infer"]}
+                            "out_dir": it.dir(INFER), "config": cfg.infer}
                            for i in shards.list_shards(it.dir(COLLECTION))],
                    max_failed_fraction=mff, needs=SampleNeed(1, "fitting", "one prediction to fit the rig to"))
     fit = it.run(FIT, [{"asset": settings.assets.asset, "predictions_dir": it.dir(INFER), "index": r["index"],
-                        "out_dir": it.dir(FIT), "config": cfg["fit"]} for r in infer.records],
+                        "out_dir": it.dir(FIT), "config": cfg.fit} for r in infer.records],
                  max_failed_fraction=mff, needs=SampleNeed(1, "view planning", "one fitted pose to render"))
-    truth = cfg["pseudo_label_truth"]
-    if truth is not None:  # pseudo-label quality against the collection's hidden truth (toy)
+    if cfg.pseudo_label_truth is not None:  # pseudo-label quality against the collection's hidden truth (toy)
         it.run(PSEUDO_LABELS, [{"fit_dir": it.dir(FIT), "out_dir": it.dir(PSEUDO_LABELS),
-                                "config": {"asset": settings.assets.asset, "ground_truth": truth}}],
+                                "config": cfg.pseudo_label_truth}],
                max_failed_fraction=1.0)
     filter_dir = None if settings.ablations.no_pseudo_label_filter or settings.ablations.raw_images else \
         _filter_fits(it, cfg)
     if settings.ablations.raw_images:  # the raw-image baseline: train on the photos with fitted pseudo-labels
         it.run(RAW_IMAGES, [{"asset": settings.assets.asset, "fit_dir": it.dir(FIT), "index": r["index"],
                              "collection_dir": it.dir(COLLECTION), "out_dir": it.dir(RAW_IMAGES),
-                             "config": {"layers": settings.layers}} for r in fit.records],
+                             "config": cfg.raw_images} for r in fit.records],
                max_failed_fraction=mff, needs=need)
         return _train_and_evaluate(it, cfg, predictor)
     plan = it.run(PLAN_VIEWS, [{"asset": settings.assets.asset, "fit_dir": it.dir(FIT), "index": r["index"],
-                                "out_dir": it.dir(PLAN_VIEWS), "config": cfg["plan_views"], "filter_dir": filter_dir}
+                                "out_dir": it.dir(PLAN_VIEWS), "config": cfg.plan_views, "filter_dir": filter_dir}
                                for r in fit.records], max_failed_fraction=mff, needs=need)
     job_files = [(r["index"], r["files"][0]) for r in plan.records if r["n_jobs"] > 0]
     for stage in (RENDER, FEATURES):  # shards of an earlier plan of this run that this plan does not have
@@ -264,29 +226,28 @@ def refinement_iteration(category: str, preset: str, run_name: str, iteration: i
     return _train_and_evaluate(it, cfg, predictor)
 
 
-def _render(it: _Iteration, cfg: dict[str, Any], job_files: Sequence[tuple[int, str]]) -> StageResult:
+def _render(it: _Iteration, cfg: StageSpecs, job_files: Sequence[tuple[int, str]]) -> StageResult:
     """Blender renders of the planned jobs ``(shard index, jobs file)``: the iteration's training shards."""
-    return it.run(RENDER, [{"jobs_file": f, "index": i, "out_dir": it.dir(RENDER), "config": cfg["render"]}
+    return it.run(RENDER, [{"jobs_file": f, "index": i, "out_dir": it.dir(RENDER), "config": cfg.render}
                            for i, f in job_files],
                   max_failed_fraction=it.settings.max_failed_fraction,
                   needs=training_need(it.settings.train.batch_size))
 
 
-def _filter_fits(it: _Iteration, cfg: dict[str, Any]) -> str:
+def _filter_fits(it: _Iteration, cfg: StageSpecs) -> str:
     """The pseudo-label filter over the iteration's fits (``tasks.filter``); with the collection's hidden truth,
     its precision against it. Adds the kept fraction (and the precision) to the iteration's notes; returns the
     filter folder plan views reads."""
     settings, iteration = it.settings, it.iteration
     result = it.run(FILTER, [{"asset": settings.assets.asset, "fit_dir": it.dir(FIT), "predictions_dir": it.dir(INFER),
-                              "out_dir": it.dir(FILTER), "config": cfg["filter"]}],
+                              "out_dir": it.dir(FILTER), "config": cfg.filter}],
                     max_failed_fraction=0.0, needs=SampleNeed(1, "view planning", "one kept fit to render"))
     errors = Path(it.dir(PSEUDO_LABELS)) / "pseudo_labels.parquet"
     check_record = None
     if it.ran(PSEUDO_LABELS) and errors.is_file():
         check = it.run(FILTER_CHECK, [{"fit_dir": it.dir(FIT), "filter_dir": it.dir(FILTER), "errors_file": str(errors),
                                        "out_dir": it.dir(FILTER_CHECK),
-                                       "config": {"asset": settings.assets.asset,
-                                                  "ground_truth": cfg["pseudo_label_truth"]}}],
+                                       "config": cfg.pseudo_label_truth}],
                        max_failed_fraction=1.0)
         check_record = check.records[0] if check.records else None
     lines = pseudo_label_filter_notes(result.records[0], check_record)
@@ -297,17 +258,17 @@ def _filter_fits(it: _Iteration, cfg: dict[str, Any]) -> str:
     return it.dir(FILTER)
 
 
-def _train_and_evaluate(it: _Iteration, cfg: dict[str, Any], previous: str | None) -> dict[str, Any]:
+def _train_and_evaluate(it: _Iteration, cfg: StageSpecs, previous: str | None) -> dict[str, Any]:
     """The tail every iteration shares: features of the iteration's training shards → train Φ_iteration (from
     Φ_{iteration-1}'s weights ``previous`` when ``train.warm_start``; from scratch at iteration 0) → evaluate it
     on the collection (masks) and the test split."""
     settings, mff = it.settings, it.settings.max_failed_fraction
     training = it.stages[-1]  # render (or raw_images): the training shards
     it.run(FEATURES, [{"input_dir": it.dir(RENDER), "index": r["index"], "out_dir": it.dir(FEATURES),
-                       "config": cfg["features"]} for r in training.records], max_failed_fraction=mff)
+                       "config": cfg.features} for r in training.records], max_failed_fraction=mff)
     init_from = previous if previous is not None and settings.train.warm_start else None
     train = it.run(TRAIN, [{"shards_dir": it.dir(RENDER), "features_dir": it.dir(FEATURES), "out_dir": it.dir(TRAIN),
-                            "config": {**cfg["train"], "init_from": init_from}}], max_failed_fraction=0.0)
+                            "config": cfg.train_from(init_from)}], max_failed_fraction=0.0)
     predictor = train.records[0]["predictor"]
     _evaluate_test(it, cfg, predictor)
     return _finish_iteration(it, predictor)

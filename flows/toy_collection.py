@@ -20,9 +20,9 @@ from typing import Any
 
 from prefect import flow
 
-from bat3r_core.config_utils import to_mapping
 from bat3r_core.predictor.collection import CollectionConfig, list_collection, plan_shards
 from bat3r_core.runs import SampleNeed, require_samples, summarize_drops
+from bat3r_core.specs import GeneratedCollectionSpec
 from bat3r_core.stages import GENERATED_COLLECTION
 from flows._fanout import StageResult, artifact_key, run_stage
 from flows._settings import RunSettings, resolve_run
@@ -52,9 +52,10 @@ def prepare_split(settings: RunSettings, split: str, spec: dict[str, Any],
         return result
 
     if spec["kind"] == "generated":
-        cfg = {"n": spec["n"], "seed": spec["seed"], "resolution": settings.image_size,
-               "render": to_mapping(settings.render), "ground_truth_dir": spec["ground_truth"],
-               **{k: spec[k] for k in _GENERATED_KEYS if k in spec}}
+        cfg = GeneratedCollectionSpec(
+            n=spec["n"], seed=spec["seed"], resolution=settings.image_size, render=settings.render,
+            ground_truth_dir=spec["ground_truth"],
+            **{k: tuple(spec[k]) if k in ("textures", "envmaps") else spec[k] for k in _GENERATED_KEYS if k in spec})
         check(run_stage(GENERATED_COLLECTION, for_run(render_generated_collection, layout),
                         [{"out_dir": str(folder), "config": cfg}],
                         progress_key=artifact_key(layout.category, layout.run_name, split, "images"),
@@ -65,7 +66,7 @@ def prepare_split(settings: RunSettings, split: str, spec: dict[str, Any],
     ccfg = CollectionConfig(resolution=settings.image_size, shard_size=settings.shard_size)
     chunks = plan_shards(samples, ccfg.shard_size)
     out_dir = layout.run_stage_dir(split)
-    calls = [{"samples": chunk, "index": i, "out_dir": str(out_dir), "config": to_mapping(ccfg)}
+    calls = [{"samples": chunk, "index": i, "out_dir": str(out_dir), "config": ccfg}
              for i, chunk in enumerate(chunks)]
     if not calls:
         raise ValueError(f"{split}: no image in {folder} (expected images/ with masks/, or a Parquet index)")

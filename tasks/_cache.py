@@ -27,6 +27,7 @@ from prefect.tasks import exponential_backoff
 from bat3r_core import shards, stages
 from bat3r_core.config_utils import to_mapping
 from bat3r_core.runs import RunLayout, stage_code_version
+from bat3r_core.specs import as_spec
 
 __all__ = ["stage_cache_key", "shard_input_files", "record_is_intact", "stage_task", "for_run", "GPU_TAG",
            "RETRY_BACKOFF_FACTOR"]
@@ -92,13 +93,16 @@ def record_is_intact(record: Mapping[str, Any]) -> bool:
 
 
 def stage_task(stage: str, *, inputs: Callable[[Mapping[str, Any]], Sequence[os.PathLike]],
-               output: Callable[[Mapping[str, Any]], os.PathLike], config_param: str = "config",
-               retries: int = 0, gpu: bool = False, **task_kwargs: Any) -> Callable[[Callable], Task]:
+               output: Callable[[Mapping[str, Any]], os.PathLike], spec: type | None = None,
+               config_param: str = "config", retries: int = 0, gpu: bool = False,
+               **task_kwargs: Any) -> Callable[[Callable], Task]:
     """Decorator: the Prefect task of stage ``stage`` of ``bat3r_core.stages.STAGES``, cached by
     ``stage_cache_key`` with the code version of the module the table names for it. A name that is not a stage of
     the table, or one that runs another stage's task (``Stage.task_stage``), is refused at import.
 
     inputs / output: map the task's bound parameters to its input files and its output location.
+    spec: the typed spec (``bat3r_core.specs``) the task's config parameter holds; the key hashes the spec's
+    mapping form, so the spec and a mapping of it (a deployment parameter, a test's dict) share one key.
     config_param: the parameter holding the stage config. retries: retried with exponential back-off
     (``RETRY_BACKOFF_FACTOR``·2^k seconds, 20 % jitter) — for rendering, I/O and inference. gpu: tag the task
     ``GPU_TAG``. Results persist as JSON (``result_serializer="json"``).
@@ -110,7 +114,10 @@ def stage_task(stage: str, *, inputs: Callable[[Mapping[str, Any]], Sequence[os.
     version = stage_code_version(entry.module)
 
     def key_fn(context: Any, parameters: Mapping[str, Any]) -> str:
-        return stage_cache_key(stage, version, inputs(parameters), parameters.get(config_param), output(parameters))
+        config = parameters.get(config_param)
+        if spec is not None:  # a bad config raises here; Prefect logs it and the task reports it when it runs
+            config = as_spec(spec, config, f"{stage} {config_param}")
+        return stage_cache_key(stage, version, inputs(parameters), config, output(parameters))
 
     def decorate(fn: Callable) -> Task:
         options: dict[str, Any] = dict(name=f"{stage}", cache_key_fn=key_fn, persist_result=True,

@@ -7,6 +7,7 @@ from pathlib import Path
 from prefect import task
 
 from bat3r_core import evaluation, evaluation_truth, report, shards
+from bat3r_core.specs import CollectionEvaluationSpec, EvaluateSpec, TruthSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
 
 __all__ = ["update_metrics", "build_report", "evaluation_inputs", "evaluate_shard", "pseudo_label_quality",
@@ -51,45 +52,53 @@ def build_report(run_dir: str) -> str:
 def _shard_inputs(p: dict) -> list[Path]:
     from bat3r_core.predictor.infer import clouds_path
 
-    return [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"])] + \
+    spec = as_spec(EvaluateSpec, p["config"], "evaluate config")
+    return [Path(spec.asset), Path(spec.ground_truth)] + \
         shard_input_files(p["predictions_dir"], p["index"]) + [clouds_path(p["predictions_dir"], p["index"])]
 
 
 @stage_task("evaluate", inputs=_shard_inputs,
-            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
+            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), spec=EvaluateSpec, retries=1,
             task_run_name="evaluate-{index}")
-def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: dict) -> dict:
+def evaluate_shard(predictions_dir: str, index: int, out_dir: str, config: EvaluateSpec | dict) -> dict:
     """Per-sample evaluation rows of the test predictions in shard ``index`` of ``predictions_dir``
     (``bat3r_core.evaluation_truth.evaluate_prediction_shard``) → shard ``index`` of ``out_dir``.
-    config: ``{"asset", "ground_truth" (ground_truth.npz), "body_frame", "split", "iteration", "seed"}``.
-    Returns the shard record."""
+    config: a ``bat3r_core.specs.EvaluateSpec`` (or its mapping). Returns the shard record."""
     from bat3r_core.rig_io import load_rig
     from bat3r_core.runs import shard_record
 
-    gt = evaluation_truth.load_ground_truth(config["ground_truth"])
+    spec = as_spec(EvaluateSpec, config, "evaluate config")
+    gt = evaluation_truth.load_ground_truth(spec.ground_truth)
     paths = evaluation_truth.evaluate_prediction_shard(
-        predictions_dir, index, gt, load_rig(config["asset"]), dict(config["body_frame"]), str(config["split"]),
-        int(config["iteration"]), out_dir, seed=int(config.get("seed", 0)))
+        predictions_dir, index, gt, load_rig(spec.asset), dict(spec.body_frame), spec.split, spec.iteration, out_dir,
+        seed=spec.seed)
     return shard_record("evaluate", index, paths)
 
 
-@stage_task("pseudo_labels", inputs=lambda p: [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"])]
-            + [f for i in shards.list_shards(p["fit_dir"]) for f in shard_input_files(p["fit_dir"], i)],
+def _truth_inputs(p: dict) -> list[Path]:
+    spec = as_spec(TruthSpec, p["config"], "pseudo_labels config")
+    return [Path(spec.asset), Path(spec.ground_truth)] + \
+        [f for i in shards.list_shards(p["fit_dir"]) for f in shard_input_files(p["fit_dir"], i)]
+
+
+@stage_task("pseudo_labels", inputs=_truth_inputs, spec=TruthSpec,
             output=lambda p: Path(p["out_dir"]) / evaluation_truth.PSEUDO_LABEL_FILE, retries=1)
-def pseudo_label_quality(fit_dir: str, out_dir: str, config: dict) -> dict:
+def pseudo_label_quality(fit_dir: str, out_dir: str, config: TruthSpec | dict) -> dict:
     """Fitted-pose vs hidden ground-truth pose errors of an iteration's collection fits
     (``bat3r_core.evaluation_truth.write_pseudo_label_errors``) → ``out_dir/pseudo_labels.parquet``.
-    config: ``{"asset", "ground_truth" (the collection's ground_truth.npz)}``. Returns ``stage, files,
-    content_hash, n`` and the mean errors."""
+    config: a ``bat3r_core.specs.TruthSpec`` (the rig and the collection's ``ground_truth.npz``). Returns
+    ``stage, files, content_hash, n`` and the mean errors."""
     from bat3r_core.rig_io import load_rig
 
+    spec = as_spec(TruthSpec, config, "pseudo_labels config")
     path, summary = evaluation_truth.write_pseudo_label_errors(
-        fit_dir, evaluation_truth.load_ground_truth(config["ground_truth"]), load_rig(config["asset"]), out_dir)
+        fit_dir, evaluation_truth.load_ground_truth(spec.ground_truth), load_rig(spec.asset), out_dir)
     return {"stage": "pseudo_labels", "files": [str(path)], "content_hash": shards.content_hash([path]), **summary}
 
 
 def _collection_inputs(p: dict) -> list[Path]:
-    files = [Path(p["config"]["asset"])] + shard_input_files(p["predictions_dir"], p["index"]) \
+    spec = as_spec(CollectionEvaluationSpec, p["config"], "evaluate_collection config")
+    files = [Path(spec.asset)] + shard_input_files(p["predictions_dir"], p["index"]) \
         + shard_input_files(p["collection_dir"], p["index"])
     if p.get("fit_dir") and p["index"] in shards.list_shards(p["fit_dir"]):
         files += shard_input_files(p["fit_dir"], p["index"])
@@ -97,18 +106,19 @@ def _collection_inputs(p: dict) -> list[Path]:
 
 
 @stage_task("evaluate_collection", inputs=_collection_inputs,
-            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), retries=1,
-            task_run_name="evaluate-collection-{index}")
+            output=lambda p: Path(p["out_dir"]) / shards.shard_name(p["index"]), spec=CollectionEvaluationSpec,
+            retries=1, task_run_name="evaluate-collection-{index}")
 def evaluate_collection_shard(predictions_dir: str, index: int, collection_dir: str, fit_dir: str | None,
-                              out_dir: str, config: dict) -> dict:
+                              out_dir: str, config: CollectionEvaluationSpec | dict) -> dict:
     """Mask IoUs without 3D ground truth (``bat3r_core.evaluation_masks.evaluate_collection_shard``): Φ_i's
     predictions of collection shard ``index`` and this iteration's fits of it (``fit_dir``, None at iteration 0)
-    against the collection masks → shard ``index`` of ``out_dir``. config: ``{"asset", "iteration"}``.
-    Returns the shard record."""
+    against the collection masks → shard ``index`` of ``out_dir``. config: a
+    ``bat3r_core.specs.CollectionEvaluationSpec`` (or its mapping). Returns the shard record."""
     from bat3r_core.evaluation_masks import evaluate_collection_shard as run
     from bat3r_core.rig_io import load_rig
     from bat3r_core.runs import shard_record
 
-    rig = load_rig(config["asset"]) if fit_dir and index in shards.list_shards(fit_dir) else None
-    paths = run(predictions_dir, index, collection_dir, fit_dir, rig, int(config["iteration"]), out_dir)
+    spec = as_spec(CollectionEvaluationSpec, config, "evaluate_collection config")
+    rig = load_rig(spec.asset) if fit_dir and index in shards.list_shards(fit_dir) else None
+    paths = run(predictions_dir, index, collection_dir, fit_dir, rig, spec.iteration, out_dir)
     return shard_record("evaluate_collection", index, paths)

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from bat3r_core import pseudo_labels, shards
-from bat3r_core.config_utils import from_mapping
+from bat3r_core.specs import TruthSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
 
 __all__ = ["filter_pseudo_labels", "filter_precision_check", "PRECISION_FILE"]
@@ -28,14 +28,15 @@ def _inputs(p: Mapping[str, Any]) -> list[Path]:
         [clouds_path(p["predictions_dir"], i) for i in shards.list_shards(p["fit_dir"])]
 
 
-@stage_task("filter", inputs=_inputs, output=lambda p: Path(p["out_dir"]))
+@stage_task("filter", inputs=_inputs, output=lambda p: Path(p["out_dir"]),
+            spec=pseudo_labels.PseudoLabelFilterConfig)
 def filter_pseudo_labels(asset: str, fit_dir: str, predictions_dir: str, out_dir: str,
-                         config: Mapping[str, Any]) -> dict:
+                         config: pseudo_labels.PseudoLabelFilterConfig | Mapping[str, Any]) -> dict:
     """Quality columns of every fit of ``fit_dir`` (``pseudo_labels.quality_rows``; the canonical points come from
     the inference clouds of ``predictions_dir``), the filter (``pseudo_labels.filter_fits``; its quantile is over
     all the iteration's fits) and one filter shard per fit shard in ``out_dir``.
 
-    config: ``{"filter": PseudoLabelFilterConfig mapping}``. Returns ``stage, files, parquet, content_hash``,
+    config: a ``PseudoLabelFilterConfig`` (or its mapping). Returns ``stage, files, parquet, content_hash``,
     ``n_rows`` (ok fits: the candidates), ``n_ok`` (kept), ``status_counts`` / ``status_examples`` (the drops, as
     ``bat3r_core.runs.summarize_drops`` reads them), ``kept_fraction``, ``n_rescued``.
     """
@@ -44,7 +45,7 @@ def filter_pseudo_labels(asset: str, fit_dir: str, predictions_dir: str, out_dir
     from bat3r_core.predictor.infer import clouds_path, load_clouds
     from bat3r_core.rig_io import load_rig
 
-    cfg = from_mapping(pseudo_labels.PseudoLabelFilterConfig, config["filter"], "pseudo_label_filter")
+    cfg = as_spec(pseudo_labels.PseudoLabelFilterConfig, config, "filter config")
     indices = shards.list_shards(fit_dir)
     if not indices:
         raise FileNotFoundError(f"{fit_dir}: no complete fit shard")
@@ -74,27 +75,29 @@ def filter_pseudo_labels(asset: str, fit_dir: str, predictions_dir: str, out_dir
 
 
 def _check_inputs(p: Mapping[str, Any]) -> list[Path]:
-    return [Path(p["config"]["asset"]), Path(p["config"]["ground_truth"]), Path(p["errors_file"])] + \
+    spec = as_spec(TruthSpec, p["config"], "filter_check config")
+    return [Path(spec.asset), Path(spec.ground_truth), Path(p["errors_file"])] + \
         _fit_files(p["fit_dir"]) + _fit_files(p["filter_dir"])
 
 
 @stage_task("filter_check", inputs=_check_inputs,
-            output=lambda p: Path(p["out_dir"]) / PRECISION_FILE)
+            output=lambda p: Path(p["out_dir"]) / PRECISION_FILE, spec=TruthSpec)
 def filter_precision_check(fit_dir: str, filter_dir: str, errors_file: str, out_dir: str,
-                           config: Mapping[str, Any]) -> dict:
+                           config: TruthSpec | Mapping[str, Any]) -> dict:
     """Precision / recall of the kept fits against the hidden truth (``pseudo_labels.filter_precision``): the
     pseudo-label errors ``errors_file`` (``bat3r_core.evaluation_truth.write_pseudo_label_errors``), the rest pose's
     errors (``pseudo_labels.rest_pose_errors``) and the filter shards of ``filter_dir`` →
-    ``out_dir/pseudo_label_filter.json``. config: ``{"asset", "ground_truth" (the collection's
-    ground_truth.npz)}``. Returns ``stage, files, content_hash`` and the figures."""
+    ``out_dir/pseudo_label_filter.json``. config: a ``bat3r_core.specs.TruthSpec`` (the rig and the collection's
+    ``ground_truth.npz``). Returns ``stage, files, content_hash`` and the figures."""
     import pyarrow.parquet as pq
 
     from bat3r_core.evaluation_truth import load_ground_truth
     from bat3r_core.rig_io import load_rig
 
+    spec = as_spec(TruthSpec, config, "filter_check config")
     errors = pq.read_table(errors_file).to_pylist()
     fits = shards.read_table(fit_dir).to_pylist()
-    rest = pseudo_labels.rest_pose_errors(fits, load_ground_truth(config["ground_truth"]), load_rig(config["asset"]))
+    rest = pseudo_labels.rest_pose_errors(fits, load_ground_truth(spec.ground_truth), load_rig(spec.asset))
     figures = pseudo_labels.filter_precision(errors, rest, shards.read_table(filter_dir).to_pylist())
     path = shards.atomic_write_text(Path(out_dir) / PRECISION_FILE, json.dumps(figures, indent=1, sort_keys=True))
     return {"stage": "filter_check", "files": [str(path)], "content_hash": shards.content_hash([path]), **figures}

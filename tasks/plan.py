@@ -10,11 +10,10 @@ from typing import Any, Mapping
 import pyarrow.parquet as pq
 
 from bat3r_core import datasets, shards
-from bat3r_core.config_utils import from_mapping
-from bat3r_core.fitting.augment import AugmentConfig, plan_views_for_fits
+from bat3r_core.fitting.augment import plan_views_for_fits
 from bat3r_core.render.jobs import write_jobs
 from bat3r_core.rig_io import load_rig
-from bat3r_core.viewpoints import CameraPriorConfig
+from bat3r_core.specs import PlanViewsSpec, SampledPlanSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
 
 __all__ = ["plan_sampled_jobs", "plan_views_shard"]
@@ -22,25 +21,19 @@ __all__ = ["plan_sampled_jobs", "plan_views_shard"]
 _BUILDERS = {"canonical": datasets.canonical_jobs, "random_pose": datasets.random_pose_jobs}
 
 
-@stage_task("plan", inputs=lambda p: [Path(p["asset"])], output=lambda p: Path(p["out_dir"]))
-def plan_sampled_jobs(asset: str, out_dir: str, config: Mapping[str, Any]) -> dict:
+@stage_task("plan", inputs=lambda p: [Path(p["asset"])], output=lambda p: Path(p["out_dir"]), spec=SampledPlanSpec)
+def plan_sampled_jobs(asset: str, out_dir: str, config: SampledPlanSpec | Mapping[str, Any]) -> dict:
     """Sample render jobs around the rig of ``asset`` and write them to ``out_dir/part-NNNNN.parquet``.
 
-    config: ``{"kind": "canonical" | "random_pose", "n", "seed", "resolution", "shard_size", "body_frame":
-    {origin, forward, horizontal}, "prior": CameraPriorConfig mapping, "num_textures", "num_envmaps"}``
-    (``bat3r_core.datasets.canonical_jobs`` / ``random_pose_jobs``; the job builders are pure, the task writes
-    their output). Returns ``stage, files, content_hash, n_jobs, n_shards``.
+    config: a ``bat3r_core.specs.SampledPlanSpec`` (or its mapping) — ``bat3r_core.datasets.canonical_jobs`` /
+    ``random_pose_jobs``; the job builders are pure, the task writes their output. Returns ``stage, files,
+    content_hash, n_jobs, n_shards``.
     """
-    kind = config["kind"]
-    if kind not in _BUILDERS:
-        raise ValueError(f"config.kind must be one of {sorted(_BUILDERS)}, got {kind!r}")
-    shard_size = int(config["shard_size"])
-    if shard_size < 1:
-        raise ValueError(f"config.shard_size must be >= 1, got {shard_size}")
-    prior = from_mapping(CameraPriorConfig, config["prior"], "prior")
-    jobs = _BUILDERS[kind](load_rig(asset), int(config["n"]), int(config["seed"]), dict(config["body_frame"]),
-                           prior, resolution=int(config["resolution"]), num_textures=int(config["num_textures"]),
-                           num_envmaps=int(config["num_envmaps"]), prefix=kind)
+    spec = as_spec(SampledPlanSpec, config, "plan config")
+    shard_size = spec.shard_size
+    jobs = _BUILDERS[spec.kind](load_rig(asset), spec.n, spec.seed, dict(spec.body_frame), spec.prior,
+                                resolution=spec.resolution, num_textures=spec.num_textures,
+                                num_envmaps=spec.num_envmaps, prefix=spec.kind)
     files = [write_jobs(jobs[s:s + shard_size], Path(out_dir) / f"{shards.shard_name(i)}.parquet")
              for i, s in enumerate(range(0, len(jobs), shard_size))]
     return {"stage": "plan", "files": [str(f) for f in files], "content_hash": shards.content_hash(files),
@@ -56,17 +49,17 @@ def _views_inputs(p: Mapping[str, Any]) -> list[Path]:
 
 @stage_task("plan_views", inputs=_views_inputs,
             output=lambda p: Path(p["out_dir"]) / f"{shards.shard_name(p['index'])}.parquet",
-            task_run_name="plan-{index}")
-def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config: Mapping[str, Any],
+            spec=PlanViewsSpec, task_run_name="plan-{index}")
+def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config: PlanViewsSpec | Mapping[str, Any],
                      filter_dir: str | None = None) -> dict:
     """Render jobs for the fitted rows of fit shard ``index`` of ``fit_dir``: the estimated view and 1–2 augmented
     views per fit (``bat3r_core.fitting.augment.plan_views_for_fits``; rows that are not ok or have no camera are
-    skipped), written to ``out_dir/part-<index>.parquet``. config: ``{"augment": AugmentConfig mapping,
-    "body_frame": {origin, forward, horizontal}, "seed": int}``; shard ``index`` draws with seed
-    ``seed * 1_000_003 + index``. filter_dir: the pseudo-label filter's shards (``tasks.filter``); when given,
-    only the fits it kept are planned (``bat3r_core.pseudo_labels.read_kept``), otherwise every ok fit.
+    skipped), written to ``out_dir/part-<index>.parquet``. config: a ``bat3r_core.specs.PlanViewsSpec`` (or its
+    mapping); shard ``index`` draws with seed ``seed * 1_000_003 + index``. filter_dir: the pseudo-label
+    filter's shards (``tasks.filter``); when given, only the fits it kept are planned
+    (``bat3r_core.pseudo_labels.read_kept``), otherwise every ok fit.
     Returns ``stage, index, files, content_hash, n_jobs, n_fits, n_kept``."""
-    augment = from_mapping(AugmentConfig, config["augment"], "augment")
+    spec = as_spec(PlanViewsSpec, config, "plan_views config")
     rows = pq.read_table(shards.shard_paths(fit_dir, index).parquet).to_pylist()
     if filter_dir:
         from bat3r_core.pseudo_labels import read_kept
@@ -74,8 +67,8 @@ def plan_views_shard(asset: str, fit_dir: str, index: int, out_dir: str, config:
         decided = read_kept(filter_dir, index, [r["sample_id"] for r in rows])
         rows = [r if d["kept"] else {**r, "status": d["status"], "reason": d["reason"]}
                 for r, d in zip(rows, decided)]
-    jobs = plan_views_for_fits(load_rig(asset), rows, dict(config["body_frame"]), augment,
-                               seed=_shard_seed(int(config["seed"]), index))
+    jobs = plan_views_for_fits(load_rig(asset), rows, dict(spec.body_frame), spec.augment,
+                               seed=_shard_seed(spec.seed, index))
     path = write_jobs(jobs, Path(out_dir) / f"{shards.shard_name(index)}.parquet")
     return {"stage": "plan_views", "index": index, "files": [str(path)], "content_hash": shards.content_hash([path]),
             "n_jobs": len(jobs), "n_fits": len(rows), "n_kept": sum(r["status"] == shards.STATUS_OK for r in rows)}

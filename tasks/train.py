@@ -6,11 +6,10 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from bat3r_core import shards
-from bat3r_core.config_utils import from_mapping
 from bat3r_core.predictor import train as training
-from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.data import ShardDataset
-from bat3r_core.predictor.features import FeatureConfig, make_feature_fn
+from bat3r_core.predictor.features import make_feature_fn
+from bat3r_core.specs import TrainSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
 from tasks._devices import gpu_slot
 
@@ -63,37 +62,36 @@ def dashboard_progress(out_dir: str) -> Callable[[dict[str, Any]], None]:
 
 
 def _inputs(p: Mapping[str, Any]) -> list[Path]:
-    init = p["config"].get("init_from")
+    init = as_spec(TrainSpec, p["config"], "train config").init_from
     features = p.get("features_dir")
     return training_inputs(p["shards_dir"]) + (training_inputs(features) if features else []) + \
         ([Path(init)] if init else [])
 
 
-@stage_task("train", inputs=_inputs, output=lambda p: Path(p["out_dir"]), retries=1,
-            gpu=True)
-def train_model(shards_dir: str, out_dir: str, config: Mapping[str, Any], features_dir: str | None = None) -> dict:
+@stage_task("train", inputs=_inputs, output=lambda p: Path(p["out_dir"]), spec=TrainSpec, retries=1, gpu=True)
+def train_model(shards_dir: str, out_dir: str, config: TrainSpec | Mapping[str, Any],
+                features_dir: str | None = None) -> dict:
     """Train the predictor on the training shards of ``shards_dir`` into ``out_dir`` (``predictor.pt``,
     ``checkpoint.pt``, ``train_log.jsonl``). A killed task resumes from ``checkpoint.pt`` on its retry or rerun.
     features_dir: the features stage's shards of ``shards_dir`` (part of the cache key), streamed as the model's
-    input so no sample's features are computed again; None computes them per batch (``config["features"]``).
+    input so no sample's features are computed again; None computes them per batch (the spec's ``features``).
 
-    config: ``{"model": ModelConfig, "train": TrainConfig, "features": FeatureConfig}`` mappings and, for a warm
-    start, ``"init_from"``: the ``predictor.pt`` whose weights initialise the model (part of the cache key).
+    config: a ``bat3r_core.specs.TrainSpec`` (or its mapping); its ``init_from``, for a warm start, is the
+    ``predictor.pt`` whose weights initialise the model (part of the cache key).
     Adapted from ``bat3r_core.predictor.train.train_predictor`` (same two calls) to pass the GPU this task holds:
     ``train_predictor`` has no device argument. Returns ``stage, predictor, files, content_hash, steps,
     final_loss`` (the last logged total loss).
     """
-    _discard_stale_checkpoint(Path(out_dir), shards.content_hash(_inputs({"shards_dir": shards_dir, "config": config,
+    spec = as_spec(TrainSpec, config, "train config")
+    _discard_stale_checkpoint(Path(out_dir), shards.content_hash(_inputs({"shards_dir": shards_dir, "config": spec,
                                                                            "features_dir": features_dir})))
-    model_cfg = from_mapping(ModelConfig, config["model"], "model")
-    train_cfg = from_mapping(TrainConfig, config["train"], "train")
-    feature_cfg = from_mapping(FeatureConfig, config["features"], "features")
-    source = {"features_dir": features_dir} if features_dir else {"feature_fn": make_feature_fn(feature_cfg)}
+    model_cfg, train_cfg = spec.model, spec.train
+    source = {"features_dir": features_dir} if features_dir else {"feature_fn": make_feature_fn(spec.features)}
     dataset = ShardDataset(shards_dir, cache_shards=train_cfg.shuffle_shards, **source)
     with gpu_slot() as device:
         path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
                                 device=None if device is None else f"cuda:{device}",
-                                init_from=config.get("init_from"), progress=dashboard_progress(out_dir)).train()
+                                init_from=spec.init_from, progress=dashboard_progress(out_dir)).train()
     log = Path(out_dir) / "train_log.jsonl"
     lines = log.read_text().splitlines() if log.is_file() else []
     last = json.loads(lines[-1]) if lines else {}

@@ -108,9 +108,18 @@ def test_stage_code_versions_follow_the_table_module():
     from tasks._cache import stage_cache_key
     from tasks.fit import _inputs, fit_shard
 
-    params = {"asset": "a.glb", "predictions_dir": "/nonexistent", "index": 0, "out_dir": "/tmp/x", "config": {}}
+    from bat3r_core.config_utils import to_mapping
+    from bat3r_core.fitting.config import FittingConfig
+    from bat3r_core.specs import CropCamera, FitSpec
+
+    spec = FitSpec(fitting=FittingConfig(), camera=CropCamera(fov_deg=50.0, resolution=32))
+    params = {"asset": "a.glb", "predictions_dir": "/nonexistent", "index": 0, "out_dir": "/tmp/x", "config": spec}
     key = fit_shard.cache_key_fn(None, params)
     version = runs.stage_code_version(stages.stage("fit").module)
-    assert key == stage_cache_key("fit", version, _inputs(params), {}, Path("/tmp/x/part-00000"))
-    assert key != stage_cache_key("fit", runs.stage_code_version("bat3r_core.shards"), _inputs(params), {},
+    assert key == stage_cache_key("fit", version, _inputs(params), spec, Path("/tmp/x/part-00000"))
+    assert key != stage_cache_key("fit", runs.stage_code_version("bat3r_core.shards"), _inputs(params), spec,
                                   Path("/tmp/x/part-00000"))
+    # the spec and its mapping form (a deployment's parameter) share one key; a changed setting does not
+    assert fit_shard.cache_key_fn(None, {**params, "config": to_mapping(spec)}) == key
+    changed = FitSpec(fitting=FittingConfig(), camera=CropCamera(fov_deg=51.0, resolution=32))
+    assert fit_shard.cache_key_fn(None, {**params, "config": changed}) != key

@@ -1,6 +1,6 @@
 """One contract test per task of the stage table: its inputs → the shard (or file) it writes → the fields of the
 record it returns. The tasks run in pipeline order on the toy at tiny sizes, each on the previous ones' real
-outputs, with the stage configs the flow builds (``flows.bootstrap._stage_configs`` of ``resolve_run``), called
+outputs, with the typed stage specs the flow builds (``flows._settings.stage_specs`` of ``resolve_run``), called
 as plain functions (``task.fn``) inside one Prefect flow run so their loggers and artifacts work.
 
 A record's ``content_hash`` must be the hash of the files it names, its row counts those of its shard: downstream
@@ -15,7 +15,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from bat3r_core import shards, stages
-from bat3r_core.config_utils import to_mapping
+from bat3r_core.specs import EvaluateSpec, GeneratedCollectionSpec, TruthSpec
 from bat3r_core.predictor.collection import CollectionConfig, list_collection
 from bat3r_core.runs import summarize_drops
 
@@ -56,10 +56,10 @@ def chain(prefect_harness, catalog, tmp_path_factory):
     from prefect import flow
 
     from flows._settings import resolve_run
-    from flows.bootstrap import _stage_configs
+    from flows._settings import stage_specs
 
     settings = resolve_run("toy", "tiny", "contracts", TINY)
-    cfg = _stage_configs(settings, seed=0)
+    cfg = stage_specs(settings, seed=0)
     layout = settings.layout.create()
     root, asset = layout.root, settings.assets.asset
     spec = settings.collection
@@ -71,50 +71,51 @@ def chain(prefect_harness, catalog, tmp_path_factory):
     @flow(name="task-contracts")
     def run_chain() -> None:
         images = Path(spec["path"])
-        gen = _task("generated_collection").fn(str(images), {
-            "n": spec["n"], "seed": spec["seed"], "resolution": settings.image_size,
-            "render": to_mapping(settings.render), "ground_truth_dir": spec["ground_truth"],
-            "pose_sampler": spec["pose_sampler"]})
+        gen = _task("generated_collection").fn(str(images), GeneratedCollectionSpec(
+            n=spec["n"], seed=spec["seed"], resolution=settings.image_size, render=settings.render,
+            ground_truth_dir=spec["ground_truth"], pose_sampler=spec["pose_sampler"]))
         out["generated_collection"] = (gen, images)
         samples = [{"sample_id": s.sample_id, "image_path": str(s.image_path), "mask_path": str(s.mask_path)}
                    for s in list_collection(images)]
-        ccfg = to_mapping(CollectionConfig(resolution=settings.image_size, shard_size=settings.shard_size))
+        ccfg = CollectionConfig(resolution=settings.image_size, shard_size=settings.shard_size)
         for split in ("collection", "test"):  # the collection doubles as the test split: it has ground truth
             out[split] = (_task(split).fn(samples, 0, at(split), ccfg), Path(at(split)))
-        plan = _task("plan").fn(asset, at("plan", 0), cfg["plan"])
+        plan = _task("plan").fn(asset, at("plan", 0), cfg.plan)
         out["plan"] = (plan, Path(at("plan", 0)))
-        out["render"] = (_task("render").fn(plan["files"][0], 0, at("render", 0), cfg["render"]),
+        out["render"] = (_task("render").fn(plan["files"][0], 0, at("render", 0), cfg.render),
                          Path(at("render", 0)))
-        out["features"] = (_task("features").fn(at("render", 0), 0, at("features", 0), cfg["features"]),
+        out["features"] = (_task("features").fn(at("render", 0), 0, at("features", 0), cfg.features),
                            Path(at("features", 0)))
-        train = _task("train").fn(at("render", 0), at("train", 0), {**cfg["train"], "init_from": None},
+        train = _task("train").fn(at("render", 0), at("train", 0), cfg.train_from(None),
                                   features_dir=at("features", 0))
         out["train"] = (train, Path(at("train", 0)))
         for stage, split, it in (("infer", "collection", 1), ("collection_infer", "collection", 0),
                                  ("test_infer", "test", 0)):
-            out[stage] = (_task(stage).fn(train["predictor"], at(split), 0, at(stage, it), cfg["infer"]),
+            out[stage] = (_task(stage).fn(train["predictor"], at(split), 0, at(stage, it), cfg.infer),
                           Path(at(stage, it)))
-        out["fit"] = (_task("fit").fn(asset, at("infer", 1), 0, at("fit", 1), cfg["fit"]), Path(at("fit", 1)))
-        truth = str(Path(spec["ground_truth"]) / "ground_truth.npz")
+        out["fit"] = (_task("fit").fn(asset, at("infer", 1), 0, at("fit", 1), cfg.fit), Path(at("fit", 1)))
+        truth = TruthSpec(asset=asset, ground_truth=str(Path(spec["ground_truth"]) / "ground_truth.npz"))
         out["pseudo_labels"] = (_task("pseudo_labels").fn(at("fit", 1), at("pseudo_labels", 1),
-                                                          {"asset": asset, "ground_truth": truth}),
+                                                          truth),
                                 Path(at("pseudo_labels", 1)))
-        out["filter"] = (_task("filter").fn(asset, at("fit", 1), at("infer", 1), at("filter", 1), cfg["filter"]),
+        out["filter"] = (_task("filter").fn(asset, at("fit", 1), at("infer", 1), at("filter", 1), cfg.filter),
                          Path(at("filter", 1)))
         errors = str(Path(at("pseudo_labels", 1)) / "pseudo_labels.parquet")
         out["filter_check"] = (_task("filter_check").fn(at("fit", 1), at("filter", 1), errors, at("filter_check", 1),
-                                                        {"asset": asset, "ground_truth": truth}),
+                                                        truth),
                                Path(at("filter_check", 1)))
-        out["plan_views"] = (_task("plan_views").fn(asset, at("fit", 1), 0, at("plan_views", 1), cfg["plan_views"],
+        out["plan_views"] = (_task("plan_views").fn(asset, at("fit", 1), 0, at("plan_views", 1), cfg.plan_views,
                                                     filter_dir=at("filter", 1)), Path(at("plan_views", 1)))
         out["raw_images"] = (_task("raw_images").fn(asset, at("fit", 1), at("collection"), 0, at("raw_images", 1),
-                                                    {"layers": settings.layers}), Path(at("raw_images", 1)))
+                                                    cfg.raw_images), Path(at("raw_images", 1)))
         out["evaluate"] = (_task("evaluate").fn(at("test_infer", 0), 0, at("evaluate", 0),
-                                                {**cfg["evaluate"], "ground_truth": truth, "iteration": 0}),
+                                                EvaluateSpec(asset=asset, ground_truth=truth.ground_truth,
+                                                             body_frame=settings.body_frame, split="test",
+                                                             iteration=0)),
                            Path(at("evaluate", 0)))
         out["evaluate_collection"] = (_task("evaluate_collection").fn(
             at("collection_infer", 0), 0, at("collection"), None, at("evaluate_collection", 0),
-            {"asset": asset, "iteration": 0}), Path(at("evaluate_collection", 0)))
+            cfg.collection_evaluation_at(0)), Path(at("evaluate_collection", 0)))
         out["metrics"] = (_task("metrics").fn(str(root), {}), root)
         out["report"] = (_task("report").fn(str(root)), root)
 

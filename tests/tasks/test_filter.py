@@ -47,7 +47,7 @@ def _setup(tmp_path, toy_rig):
 def test_filter_task_writes_one_filter_shard_per_fit_shard_and_a_drops_record(tmp_path, toy_rig):
     asset, fit_dir, infer_dir = _setup(tmp_path, toy_rig)
     out_dir = str(tmp_path / "filter")
-    config = {"filter": {"keep_quantile": 0.5, "min_kept": 1}}
+    config = {"keep_quantile": 0.5, "min_kept": 1}
     rec = filter_pseudo_labels.fn(asset, fit_dir, infer_dir, out_dir, config)
     assert shards.list_shards(out_dir) == [0, 1]
     rows = shards.read_table(out_dir).to_pylist()
@@ -80,14 +80,14 @@ def test_filter_task_writes_one_filter_shard_per_fit_shard_and_a_drops_record(tm
 def test_filter_cache_key_covers_the_fit_shards_and_the_filter_config(tmp_path, toy_rig):
     asset, fit_dir, infer_dir = _setup(tmp_path, toy_rig)
     p = {"asset": asset, "fit_dir": fit_dir, "predictions_dir": infer_dir, "out_dir": str(tmp_path / "filter"),
-         "config": {"filter": {"keep_quantile": 0.5}}}
+         "config": {"keep_quantile": 0.5}}
 
     def key(params):
         return stage_cache_key("filter", "v", _inputs(params), params["config"], params["out_dir"])
 
     k0 = key(p)
     assert key(dict(p)) == k0
-    assert key({**p, "config": {"filter": {"keep_quantile": 0.75}}}) != k0
+    assert key({**p, "config": {"keep_quantile": 0.75}}) != k0
     rows = pq.read_table(shards.shard_paths(fit_dir, 1).parquet).to_pylist()
     shards.write_shard(fit_dir, 1, [dict(rows[0], residual_chamfer_cm=0.5)] + rows[1:])
     assert key(p) != k0
@@ -117,7 +117,7 @@ def test_precision_check_task_against_the_truth(tmp_path, toy_rig):
     # the rig as the tasks load it (the asset file), as the flow's pseudo-label task does
     errors, _ = write_pseudo_label_errors(fit_dir, gt, load_rig(asset), tmp_path / "evaluate")
     filter_dir = str(tmp_path / "filter")
-    filter_pseudo_labels.fn(asset, fit_dir, infer_dir, filter_dir, {"filter": {"keep_quantile": 0.5}})
+    filter_pseudo_labels.fn(asset, fit_dir, infer_dir, filter_dir, {"keep_quantile": 0.5})
 
     rec = filter_precision_check.fn(fit_dir, filter_dir, str(errors), str(tmp_path / "evaluate"),
                                     {"asset": asset, "ground_truth": str(tmp_path / "ground_truth.npz")})
