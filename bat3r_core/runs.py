@@ -227,7 +227,7 @@ def read_manifest(layout: RunLayout) -> dict[str, Any]:
     """The run's ``manifest.json`` as a dict (``{}`` when it does not exist yet)."""
     if not layout.manifest.is_file():
         return {}
-    return json.loads(layout.manifest.read_text(encoding="utf-8"))
+    return json.loads(shards.read_bytes(layout.manifest).decode("utf-8"))  # read once: its digest is kept too
 
 
 def write_manifest(layout: RunLayout, config: Mapping[str, Any], stage_modules: Mapping[str, str]
@@ -237,7 +237,9 @@ def write_manifest(layout: RunLayout, config: Mapping[str, Any], stage_modules: 
     config: the resolved run configuration (JSON-serialisable; e.g. ``config_utils.to_mapping`` of the stage
     configs, plus the run parameters). stage_modules: stage name → the ``bat3r_core`` module it runs; each gets
     its ``stage_code_version``. Keys: ``category, run_name, config, code_version, stage_code_versions, created,
-    updated`` (UTC ISO-8601; ``created`` is kept from an earlier manifest of the same run).
+    updated`` (UTC ISO-8601; ``created`` is kept from an earlier manifest of the same run). A manifest whose
+    content would not change but for ``updated`` is left as it is (a cached rerun writes nothing, so the report's
+    cache key, which holds the manifest, stays the same).
     """
     if not isinstance(config, Mapping):
         raise TypeError(f"config must be a mapping, got {type(config).__name__}")
@@ -256,6 +258,8 @@ def write_manifest(layout: RunLayout, config: Mapping[str, Any], stage_modules: 
         "created": previous.get("created", now),
         "updated": now,
     }
+    if previous and {**previous, "updated": now} == json.loads(json.dumps(manifest)):
+        return previous
     shards.atomic_write_text(layout.manifest, json.dumps(manifest, indent=2, sort_keys=True) + "\n")
     return manifest
 

@@ -179,14 +179,21 @@ _DIGEST_LOCK = threading.Lock()
 _MAX_DIGESTS = 200_000
 
 
+def _version_key(p: Path) -> tuple:
+    """A file version's identity: resolved path, inode, size, modification and change times in ns."""
+    st = p.stat()
+    return (str(p.resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
 def file_digest(path: str | os.PathLike) -> bytes:
     """SHA-256 of a file's bytes, read once per version of the file in this process: memoised by the file's
     identity and state (resolved path, inode, size, modification and change times in ns), so the several cache
     keys and record checks of a run that name one shard hash it once, and a file rewritten since (a new inode
-    after an atomic write, or new times) is read again. Raises FileNotFoundError for a missing file."""
+    after an atomic write, or new times) is read again. A digest carried in a task record
+    (:func:`file_digests`, :func:`remember_file_digests`) counts as read. Raises FileNotFoundError for a missing
+    file."""
     p = Path(path)
-    st = p.stat()
-    key = (str(p.resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    key = _version_key(p)
     with _DIGEST_LOCK:
         if key in _DIGESTS:
             _DIGESTS.move_to_end(key)
@@ -202,6 +209,58 @@ def file_digest(path: str | os.PathLike) -> bytes:
         while len(_DIGESTS) > _MAX_DIGESTS:
             _DIGESTS.popitem(last=False)
     return digest
+
+
+def read_bytes(path: str | os.PathLike) -> bytes:
+    """A file's bytes, whose SHA-256 also enters the digest memo (keyed by the version of the file that was read,
+    from ``fstat`` of the open file): a file read for its content is not read again to hash it."""
+    p = Path(path)
+    with open(p, "rb") as f:
+        st = os.fstat(f.fileno())
+        data = f.read()
+    key = (str(p.resolve()), st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    with _DIGEST_LOCK:
+        _DIGESTS[key] = hashlib.sha256(data).digest()
+        while len(_DIGESTS) > _MAX_DIGESTS:
+            _DIGESTS.popitem(last=False)
+    return data
+
+
+def file_digests(paths: Iterable[str | os.PathLike]) -> dict[str, list]:
+    """``{resolved path: [sha256 hex, inode, size, mtime_ns, ctime_ns]}`` of the given files (hashed through the
+    memo, so a file just hashed for its record is not read again): what a task record carries
+    (``file_digests``) so that downstream cache keys and intact checks, in whichever process reads the record,
+    reuse the writer's hash instead of reading the file (:func:`remember_file_digests`)."""
+    out = {}
+    for p in paths:
+        p = Path(p)
+        digest = file_digest(p)
+        key = _version_key(p)
+        out[key[0]] = [digest.hex(), *key[1:]]
+    return out
+
+
+def remember_file_digests(digests: Mapping[str, Sequence] | None) -> int:
+    """Seed this process's digest memo with a record's ``file_digests`` (:func:`file_digests`): an entry is taken
+    only while the file on disk is still that version (same inode, size and ns times, checked with ``stat``,
+    not read); a file changed or gone since is skipped and is hashed from its bytes when next asked for.
+    Returns the number of entries taken."""
+    taken = 0
+    for path, entry in (digests or {}).items():
+        try:
+            sha, *version = entry
+            key = _version_key(Path(path))
+            digest = bytes.fromhex(sha)
+        except (OSError, ValueError, TypeError):
+            continue
+        if list(key[1:]) != [int(v) for v in version] or key[0] != path:
+            continue
+        with _DIGEST_LOCK:
+            _DIGESTS[key] = digest
+            while len(_DIGESTS) > _MAX_DIGESTS:
+                _DIGESTS.popitem(last=False)
+        taken += 1
+    return taken
 
 
 def file_digest_reads() -> dict[str, int]:

@@ -53,7 +53,6 @@ class Stage:
             itself), or a folder the catalog names (``scope="external"``: a generated collection's images).
         scope: ``external``, ``run`` or ``iteration``.
         task_stage: the stage whose task it runs, when that is another stage's (default: itself).
-        cached: whether its task is cached (the report is rebuilt every time).
         noun: what its samples are called where drops are reported (``bat3r_core.runs.summarize_drops``).
     """
 
@@ -64,7 +63,6 @@ class Stage:
     folder: str
     scope: Scope = "iteration"
     task_stage: str | None = None
-    cached: bool = True
     noun: str = "samples"
 
     @property
@@ -122,7 +120,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("metrics", "bat3r_core.evaluation:evaluate_run", "tasks.evaluate:update_metrics",
           ("evaluate", "evaluate_collection"), ".", scope="run"),
     Stage("report", "bat3r_core.report:build_report", "tasks.evaluate:build_report",
-          ("metrics", "fit", "filter", "pseudo_labels"), ".", scope="run", cached=False),
+          ("metrics", "fit", "filter", "pseudo_labels"), ".", scope="run"),
 )
 """Every stage, in data-flow order."""
 

@@ -23,7 +23,7 @@ from prefect.logging import get_run_logger
 
 from bat3r_core.runs import (DROP_WARN_FRACTION, FailureSummary, SampleDrops, ShardFailure, apply_failure_policy,
                              summarize_drops)
-from tasks._cache import record_is_intact
+from tasks._cache import record_is_intact, remember_record_digests
 
 __all__ = ["StageResult", "run_stage", "report_drops", "artifact_key"]
 
@@ -115,6 +115,7 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
         current.wait()
         try:
             record = current.result()
+            remember_record_digests(record)  # the writer's hashes: downstream cache keys read no file again
             if current.state.name == "Cached":
                 if record_is_intact(record):
                     cached += 1
@@ -123,6 +124,7 @@ def run_stage(stage: str, stage_task: Task, calls: Sequence[Mapping[str, Any]], 
                     current = stage_task.with_options(refresh_cache=True).submit(**calls[i])
                     current.wait()
                     record = current.result()
+                    remember_record_digests(record)
                     recomputed += 1
             records[i] = record
         except Exception as exc:  # the task failed after its retries: report the shard, apply the policy

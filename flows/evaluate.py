@@ -20,7 +20,7 @@ from bat3r_core.catalog import load_catalog
 from bat3r_core.runs import RunLayout
 from flows._artifacts import METRIC_COLUMNS
 from flows._fanout import artifact_key
-from tasks._cache import for_run, record_is_intact
+from tasks._cache import for_run, record_is_intact, remember_record_digests
 from tasks.evaluate import build_report, update_metrics
 
 __all__ = ["evaluate"]
@@ -36,15 +36,24 @@ def evaluate(category: str = "toy", run_name: str = "tiny", storage_root: str | 
     layout = RunLayout(root, category, run_name)
     if not layout.root.is_dir():
         raise FileNotFoundError(f"run folder {layout.root} does not exist")
-    metrics = for_run(update_metrics, layout)(str(layout.root), {})
-    if not record_is_intact(metrics):  # a cached record whose metrics.parquet was deleted or changed since
-        metrics = for_run(update_metrics, layout, refresh_cache=True)(str(layout.root), {})
-    report = build_report(str(layout.root))
+    metrics = _run_cached(update_metrics, layout)
+    report = _run_cached(build_report, layout)["report"]
     if metrics["rows"]:
         create_table_artifact(table=[{c: r.get(c) for c in METRIC_COLUMNS} for r in metrics["rows"]],
                               key=artifact_key(category, run_name, "metrics"),
                               description=f"metrics.parquet of {layout.root}")
     return {"rows": metrics["rows"], "report": report}
+
+
+def _run_cached(stage_task: Any, layout: RunLayout) -> dict[str, Any]:
+    """``stage_task(run folder, {})``, cached; recomputed when the cached record's file was deleted or changed
+    since."""
+    record = for_run(stage_task, layout)(str(layout.root), {})
+    remember_record_digests(record)  # the writer's hashes: the intact check reads nothing
+    if not record_is_intact(record):
+        record = for_run(stage_task, layout, refresh_cache=True)(str(layout.root), {})
+        remember_record_digests(record)
+    return record
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,11 +10,15 @@ A stage task's cache key is a SHA-256 over
   shard index must recompute.
 
 Tasks return small JSON records (paths, content hashes, counts; ``bat3r_core.runs.shard_record``) and never arrays,
-so results persist as JSON under the run folder (``RunLayout.results_dir``). A cached record whose files were
+so results persist as JSON under the run folder (``RunLayout.results_dir``). Every record also carries the writer's
+per-file digests (``file_digests``, with each file's inode, size and ns times): the flow seeds its digest memo with
+them (``remember_record_digests``), so the cache keys of the stages that read those files, and the intact checks,
+hash nothing again, in a fresh process on a cached rerun too. A cached record whose files were
 deleted or changed since is detected by ``record_is_intact`` and recomputed by the flows (``refresh_cache``).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -29,8 +33,8 @@ from bat3r_core.config_utils import to_mapping
 from bat3r_core.runs import RunLayout, stage_code_version
 from bat3r_core.specs import as_spec
 
-__all__ = ["stage_cache_key", "shard_input_files", "record_is_intact", "stage_task", "for_run", "GPU_TAG",
-           "RETRY_BACKOFF_FACTOR"]
+__all__ = ["stage_cache_key", "shard_input_files", "record_files", "record_is_intact", "remember_record_digests",
+           "stage_task", "with_file_digests", "for_run", "GPU_TAG", "RETRY_BACKOFF_FACTOR"]
 
 GPU_TAG = "bat3r-gpu"
 """Tag of tasks that occupy a GPU (a Prefect tag concurrency limit on it caps them server-wide)."""
@@ -75,6 +79,37 @@ def shard_input_files(folder: str | os.PathLike, index: int) -> list[Path]:
     """The files of shard ``index`` of ``folder``: its Parquet file and, when it exists, its npz."""
     p = shards.shard_paths(folder, index)
     return [p.parquet] + ([p.npz] if p.npz.is_file() else [])
+
+
+def record_files(record: Mapping[str, Any]) -> list[Path]:
+    """The files a task record names (``files``, ``parquet``, ``npz``, ``clouds``, ``predictor``) that exist, each
+    once, in that order."""
+    names = list(record.get("files") or ()) + [record.get(k) or "" for k in ("parquet", "npz", "clouds", "predictor")]
+    out = []
+    for name in dict.fromkeys(n for n in names if isinstance(n, str) and n):
+        if Path(name).is_file():
+            out.append(Path(name))
+    return out
+
+
+def with_file_digests(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` whose returned record also carries ``file_digests`` (``shards.file_digests`` of ``record_files``):
+    the writer's hashes, taken from the digest memo its ``content_hash`` just filled, so downstream cache keys and
+    intact checks in any process that reads the record (``remember_record_digests``) need not read the files."""
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        record = fn(*args, **kwargs)
+        if isinstance(record, dict):
+            record["file_digests"] = shards.file_digests(record_files(record))
+        return record
+
+    return wrapper
+
+
+def remember_record_digests(record: Mapping[str, Any]) -> int:
+    """Seed this process's digest memo from a record's ``file_digests`` (``shards.remember_file_digests``:
+    entries whose file changed since are ignored). Returns the number taken."""
+    return shards.remember_file_digests(record.get("file_digests"))
 
 
 def record_is_intact(record: Mapping[str, Any]) -> bool:
@@ -126,7 +161,7 @@ def stage_task(stage: str, *, inputs: Callable[[Mapping[str, Any]], Sequence[os.
         if retries:
             options.update(retry_delay_seconds=exponential_backoff(RETRY_BACKOFF_FACTOR), retry_jitter_factor=0.2)
         options.update(task_kwargs)
-        return task(**options)(fn)
+        return task(**options)(with_file_digests(fn))
 
     return decorate
 

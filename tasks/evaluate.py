@@ -4,8 +4,6 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from prefect import task
-
 from bat3r_core import evaluation, evaluation_truth, report, shards
 from bat3r_core.specs import CollectionEvaluationSpec, EvaluateSpec, TruthSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
@@ -42,11 +40,14 @@ def update_metrics(run_dir: str, config: dict | None = None) -> dict:
     return {"stage": "metrics", "files": [str(path)], "content_hash": shards.content_hash([path]), "rows": rows}
 
 
-@task(name="report", retries=1, retry_delay_seconds=2)
-def build_report(run_dir: str) -> str:
-    """Rebuild ``run_dir/report.html`` (``bat3r_core.report.build_report``; never cached: it is cheap and reads the
-    whole run). Returns its path."""
-    return str(report.build_report(run_dir))
+@stage_task("report", inputs=lambda p: report.report_inputs(p["run_dir"]),
+            output=lambda p: Path(p["run_dir"]) / report.REPORT_FILE, retries=1)
+def build_report(run_dir: str, config: dict | None = None) -> dict:
+    """Rebuild ``run_dir/report.html`` (``bat3r_core.report.build_report``), cached by every file it reads
+    (``bat3r_core.report.report_inputs``): a run whose evaluation, fits and manifest did not change since keeps its
+    report, and a cached rerun reads none of them for it. Returns ``stage, report, files, content_hash``."""
+    path = report.build_report(run_dir)
+    return {"stage": "report", "report": str(path), "files": [str(path)], "content_hash": shards.content_hash([path])}
 
 
 def _shard_inputs(p: dict) -> list[Path]:

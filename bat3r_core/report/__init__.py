@@ -32,12 +32,12 @@ from pathlib import Path
 
 from bat3r_core.report.inputs import QUALITATIVE_FILE, QualitativeInputs, read_report_inputs, write_report_inputs
 from bat3r_core.report.markup import _CSS, _TITLES, SECTION_IDS
-from bat3r_core.report.run_data import FIT_STAGE, _load, join_pose_errors
+from bat3r_core.report.run_data import FIT_STAGE, _load, join_pose_errors, report_inputs
 from bat3r_core.report.sections import _SECTIONS
 from bat3r_core.shards import atomic_write_bytes
 
 __all__ = ["SECTION_IDS", "QUALITATIVE_FILE", "QualitativeInputs", "write_report_inputs", "read_report_inputs",
-           "build_report", "join_pose_errors", "FIT_STAGE", "REPORT_FILE"]
+           "build_report", "report_inputs", "join_pose_errors", "FIT_STAGE", "REPORT_FILE"]
 
 REPORT_FILE = "report.html"
 

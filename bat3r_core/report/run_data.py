@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -58,6 +59,22 @@ def _read_manifest(path: Path) -> dict:
         return {}
     loaded = json.loads(path.read_text(encoding="utf-8"))
     return loaded if isinstance(loaded, dict) else {}
+
+
+def report_inputs(run_dir: str | os.PathLike) -> list[Path]:
+    """Every file ``build_report`` may read in ``run_dir``, in a fixed order: ``manifest.json``,
+    ``metrics.parquet`` and, per iteration folder, the Parquet files of the ``evaluate``, ``evaluate/collection``
+    and ``fit`` shards, ``evaluate/pseudo_labels.parquet`` and ``evaluate/qualitative.npz`` (those that exist). The
+    report task's cache key hashes them (``tasks.evaluate.build_report``); ``tests/core/test_report.py`` checks,
+    by watching the files the report opens, that nothing it reads is missing here."""
+    run_dir = Path(run_dir)
+    files = [run_dir / "manifest.json", run_dir / evaluation.METRICS_FILE]
+    for _, d in evaluation.iteration_dirs(run_dir):
+        evaluate = d / evaluation.EVALUATE_STAGE
+        for folder in (evaluate, evaluate / evaluation_masks.COLLECTION_ROWS_DIR, d / FIT_STAGE):
+            files += [shards.shard_paths(folder, i).parquet for i in shards.list_shards(folder)]
+        files += [evaluate / evaluation_truth.PSEUDO_LABEL_FILE, evaluate / QUALITATIVE_FILE]
+    return [f for f in files if f.is_file()]
 
 
 def _load(run_dir: Path) -> _RunData:

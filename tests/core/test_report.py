@@ -301,3 +301,27 @@ def test_report_shows_the_collection_mask_ious_per_iteration(full_run, tmp_path)
     page = _parse(text)
     assert page.sections == list(R.SECTION_IDS) and "error" not in page.classes
     assert "Latest (collection, iteration 1)" in text and "<td>0.600</td>" in text  # iteration 1's fit IoU
+
+
+@pytest.mark.parametrize("without_metrics", [False, True])
+def test_report_reads_only_its_declared_inputs(full_run, tmp_path, without_metrics):
+    """The report task is cached by ``report_inputs``: a file the report opens that is not listed there could change
+    without the report being rebuilt. Every read is watched (inotify, ``tests/file_reads.py``); without
+    ``metrics.parquet`` the report aggregates the per-sample and collection rows itself."""
+    import shutil
+
+    from file_reads import FileReads
+
+    run = tmp_path / "run"
+    shutil.copytree(full_run, run)
+    (run / "report.html").unlink()
+    if without_metrics:
+        (run / "metrics.parquet").unlink()
+    declared = set(R.report_inputs(run))
+    with FileReads(run) as reads:
+        R.build_report(run)
+    # an atomic write fsyncs its temporary file through a read-only open (shards.atomic_write): gone by now
+    opened = {p for p in reads.counts if p.exists()}
+    assert opened, "the watch saw no read"
+    assert opened <= declared, sorted(str(p.relative_to(run)) for p in opened - declared)
+    assert {p.name for p in opened} >= {"qualitative.npz", "part-00000.parquet"}

@@ -107,8 +107,12 @@ def test_manifest_round_trip_keeps_created(tmp_path):
     assert m1["config"] == {"preset": "tiny", "train": {"steps": 4}}
     assert m1["stage_code_versions"] == {"evaluate": runs.stage_code_version("bat3r_core.evaluation")}
     assert m1["code_version"] == runs.code_version() and m1["code_version"]
+    stat = layout.manifest.stat()
+    same = runs.write_manifest(layout, {"preset": "tiny", "train": {"steps": 4}}, {"evaluate": "bat3r_core.evaluation"})
+    assert same == m1 and layout.manifest.stat().st_ino == stat.st_ino  # nothing changed: the file is not rewritten
     m2 = runs.write_manifest(layout, {"preset": "demo"}, {})
     assert m2["created"] == m1["created"] and m2["config"] == {"preset": "demo"}
+    assert json.loads(layout.manifest.read_text()) == m2
     with pytest.raises(ValueError, match="JSON-serialisable"):
         runs.write_manifest(layout, {"x": float("nan")}, {})
     with pytest.raises(TypeError, match="config must be a mapping"):

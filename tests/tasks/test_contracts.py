@@ -199,4 +199,19 @@ def test_metrics_and_report_cover_the_evaluated_iteration(chain):
     splits = {(r["iteration"], r["split"]) for r in record["rows"]}
     assert {(0, "test"), (0, "collection")} <= splits
     report, _ = chain["report"]
-    assert report == str(root / "report.html") and "metrics-over-iterations" in Path(report).read_text()
+    assert {"stage", "report", "files", "content_hash", "file_digests"} <= set(report)
+    assert report["report"] == str(root / "report.html") == report["files"][0]
+    assert "metrics-over-iterations" in Path(report["report"]).read_text() and report["content_hash"] == _hash_of(report)
+
+
+def test_every_record_carries_the_writers_digests_of_its_files(chain):
+    """Hash once: the digest a downstream key or intact check needs comes with the record, checked by stat."""
+    from tasks._cache import record_files
+
+    for stage, (record, _) in chain.items():
+        digests = record["file_digests"]
+        files = record_files(record)
+        assert files and sorted(digests) == sorted(str(f.resolve()) for f in files), stage
+        for f in files:
+            sha, inode, size, _, _ = digests[str(f.resolve())]
+            assert sha == shards.file_digest(f).hex() and (inode, size) == (f.stat().st_ino, f.stat().st_size)

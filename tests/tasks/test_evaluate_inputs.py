@@ -32,7 +32,7 @@ def test_collection_shard_inputs_name_the_fits_only_where_the_iteration_has_them
     for folder in ("pred", "coll", "fit"):
         shards.write_shard(tmp_path / folder, 0, [{"sample_id": "c0", "status": "ok", "reason": ""}])
     p = {"predictions_dir": str(tmp_path / "pred"), "collection_dir": str(tmp_path / "coll"), "index": 0,
-         "config": {"asset": str(tmp_path / "asset.glb")}}
+         "config": {"asset": str(tmp_path / "asset.glb"), "iteration": 1}}
     without = _collection_inputs({**p, "fit_dir": None})
     assert without[0].name == "asset.glb" and [f.parent.name for f in without[1:]] == ["pred", "coll"]
     with_fits = _collection_inputs({**p, "fit_dir": str(tmp_path / "fit")})
