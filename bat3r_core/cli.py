@@ -313,6 +313,23 @@ def _cmd_bootstrap(args: argparse.Namespace) -> int:
     return run_bootstrap(bootstrap_parameters(args, args.parser))
 
 
+def _cmd_stages(args: argparse.Namespace) -> int:
+    """The pipeline's stage table (``bat3r_core.stages.STAGES``), one row per stage in data-flow order."""
+    from .stages import describe
+
+    rows = describe()
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return 0
+    columns = ("stage", "inputs", "folder", "task", "function")
+    cells = [[r[c] if c != "inputs" else ", ".join(r[c]) or "-" for c in columns] for r in rows]
+    widths = [max(len(c), *(len(row[i]) for row in cells)) for i, c in enumerate(columns)]
+    print("  ".join(c.ljust(w) for c, w in zip(columns, widths)).rstrip())
+    for row in cells:
+        print("  ".join(v.ljust(w) for v, w in zip(row, widths)).rstrip())
+    return 0
+
+
 _catalog_option = add_catalog_argument
 
 
@@ -327,6 +344,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="catalog file (default: $BAT3R_CATALOG, else ./data_catalog.yaml)")
     _catalog_option(val)
     val.set_defaults(func=_cmd_catalog_validate)
+
+    st = sub.add_parser("stages", help="print the pipeline's stage table: each stage's inputs, output folder, "
+                                       "Prefect task and bat3r_core function, in data-flow order")
+    st.add_argument("--json", action="store_true", help="print the rows as JSON")
+    st.set_defaults(func=_cmd_stages)
 
     bs = sub.add_parser("bootstrap", help="run the bootstrap flow locally (the options of python flows/bootstrap.py)",
                         description="Run the bat3r bootstrap flow locally (Prefect starts a temporary server "

@@ -120,7 +120,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("metrics", "bat3r_core.evaluation:evaluate_run", "tasks.evaluate:update_metrics",
           ("evaluate", "evaluate_collection"), ".", scope="run"),
     Stage("report", "bat3r_core.report:build_report", "tasks.evaluate:build_report",
-          ("metrics", "fit", "filter", "pseudo_labels"), ".", scope="run"),
+          ("metrics", "evaluate", "evaluate_collection", "fit", "pseudo_labels"), ".", scope="run"),
 )
 """Every stage, in data-flow order."""
 
@@ -181,6 +181,9 @@ def resolve(ref: str) -> Any:
 
 def describe() -> list[Mapping[str, Any]]:
     """The table as rows (name, function, task, inputs, folder, scope) for docs and ``bat3r stages``."""
-    return [{"stage": s.name, "function": s.function, "task": s.task, "inputs": list(s.inputs),
-             "folder": s.folder if s.scope != "iteration" else f"iter-NN/{s.folder}", "scope": s.scope}
-            for s in STAGES]
+    def folder(s: Stage) -> str:
+        return {"iteration": f"iter-NN/{s.folder}", "external": "(the catalog's collection folder)"}.get(
+            s.scope, s.folder)
+
+    return [{"stage": s.name, "function": s.function, "task": s.task, "inputs": list(s.inputs), "folder": folder(s),
+             "scope": s.scope} for s in STAGES]
