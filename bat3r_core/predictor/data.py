@@ -28,15 +28,25 @@ FeatureFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 _REQUIRED = ("rgb", "mask", "P", "Q", "occupancy", "object_depth")
 
 
-def rgb_features(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Reference ``rgb`` features: rgb (N, H, W, 3) uint8, mask (N, H, W) bool -> (N, 3, H, W) float32 in [0, 1],
-    background pixels 0."""
+def check_crops(rgb: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(rgb, mask)`` as arrays once they are a batch of object crops: rgb (N, H, W, 3) uint8 and mask (N, H, W)
+    bool. Anything else raises (ValueError for a shape or the rgb dtype, TypeError for a mask that is not bool, e.g.
+    0/255 uint8, which would scale the features). The one check every feature extractor runs."""
     rgb = np.asarray(rgb)
     mask = np.asarray(mask)
     if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"rgb: expected (N, H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
+        raise ValueError(f"rgb must be (N, H, W, 3) uint8, got {rgb.shape} {rgb.dtype}")
     if mask.shape != rgb.shape[:3]:
-        raise ValueError(f"mask: expected shape {rgb.shape[:3]}, got {mask.shape}")
+        raise ValueError(f"mask must have shape {rgb.shape[:3]} (rgb's first three axes), got {mask.shape}")
+    if mask.dtype != bool:
+        raise TypeError(f"mask must be bool, got {mask.dtype}")
+    return rgb, mask
+
+
+def rgb_features(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Reference ``rgb`` features: rgb (N, H, W, 3) uint8, mask (N, H, W) bool (:func:`check_crops`) ->
+    (N, 3, H, W) float32 in [0, 1], background pixels 0."""
+    rgb, mask = check_crops(rgb, mask)
     out = rgb.astype(np.float32) * np.float32(1.0 / 255.0) * mask[..., None].astype(np.float32)
     return np.ascontiguousarray(out.transpose(0, 3, 1, 2))
 
@@ -101,7 +111,7 @@ class ShardDataset(torch.utils.data.Dataset):
             raise ValueError(f"shard {self.folder}/part-{self.shards[0]:05d}.npz: missing arrays {missing}")
         _, self.height, self.width, self.layers, _ = first["P"].shape
         probe = self._features(first["grid"][:1], first["mask"][:1].astype(bool)) \
-            if self.features_dir is not None else self.feature_fn(first["rgb"][:1], first["mask"][:1])
+            if self.features_dir is not None else self.feature_fn(first["rgb"][:1], first["mask"][:1].astype(bool))
         if probe.ndim != 4 or probe.shape[0] != 1 or probe.shape[2:] != (self.height, self.width):
             raise ValueError(f"feature_fn: expected (1, C, {self.height}, {self.width}) for one sample, "
                              f"got {tuple(probe.shape)}")

@@ -91,7 +91,7 @@ def test_rgb_extractor_matches_reference():
 
 def test_input_checks():
     rgb, mask = _crops(2, 1)
-    with pytest.raises(ValueError, match=r"rgb must be \(N, R, R, 3\) uint8, got \(2, 32, 32, 3\) float32"):
+    with pytest.raises(ValueError, match=r"rgb must be \(N, H, W, 3\) uint8, got \(2, 32, 32, 3\) float32"):
         extract_features("rgb", rgb.astype(np.float32), mask)
     with pytest.raises(ValueError, match=r"mask must have shape \(2, 32, 32\)"):
         extract_features("rgb", rgb, mask[:1])

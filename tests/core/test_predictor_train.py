@@ -108,8 +108,10 @@ def test_dataset_targets_follow_the_shard_format(tmp_path):
         np.testing.assert_allclose(batch.targets.canonical_points[j].numpy(), Q[row], atol=0)
         expected = a["rgb"][row].astype(np.float32) / 255 * a["mask"][row][..., None]
         np.testing.assert_allclose(batch.features[j].numpy().transpose(1, 2, 0), expected, atol=1e-6)
-    with pytest.raises(ValueError, match=r"rgb: expected \(N, H, W, 3\) uint8"):
+    with pytest.raises(ValueError, match=r"rgb must be \(N, H, W, 3\) uint8"):
         rgb_features(a["rgb"].astype(np.float32), a["mask"])
+    with pytest.raises(TypeError, match="mask must be bool, got uint8"):  # a 0/255 mask would scale the features
+        rgb_features(a["rgb"], a["mask"].astype(np.uint8) * 255)
 
 
 def test_dataset_streams_the_feature_shards_of_the_features_stage(tmp_path):

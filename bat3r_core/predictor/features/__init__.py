@@ -26,6 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from bat3r_core.predictor.data import check_crops
 from bat3r_core.predictor.features.cache import _cache, sample_keys
 from bat3r_core.predictor.features.config import (_STATS, IMAGENET_MEAN, IMAGENET_STD, Dinov2Options, FeatureConfig,
                                                   FeatureStats, _hash_json, feature_stats, resolve_device)
@@ -46,18 +47,6 @@ register_extractor(Dinov2Extractor())
 
 
 # ----------------------------------------------------------------------------------------------------- public API
-def _check_inputs(rgb: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    rgb = np.asarray(rgb)
-    mask = np.asarray(mask)
-    if rgb.ndim != 4 or rgb.shape[-1] != 3 or rgb.dtype != np.uint8:
-        raise ValueError(f"rgb must be (N, R, R, 3) uint8, got {rgb.shape} {rgb.dtype}")
-    if mask.shape != rgb.shape[:3]:
-        raise ValueError(f"mask must have shape {rgb.shape[:3]} (rgb's first three axes), got {mask.shape}")
-    if mask.dtype != bool:
-        raise TypeError(f"mask must be bool, got {mask.dtype}")
-    return rgb, mask
-
-
 def feature_config_hash(name: str, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureConfig) -> str:
     """Hash of everything the features of extractor ``name`` depend on besides the images; prepares the
     extractor (fits the ``dinov2`` PCA on these samples when none exists yet)."""
@@ -77,7 +66,7 @@ def extract_features(name: str, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureC
     Returns:
         (N, C, R, R) float32 features, zero on the background.
     """
-    rgb, mask = _check_inputs(rgb, mask)
+    rgb, mask = check_crops(rgb, mask)
     if len(rgb) == 0:
         return np.zeros((0, get_extractor(name).channels(cfg)) + rgb.shape[1:3], np.float32)
     return grid_features(extract_grids(name, rgb, mask, cfg), mask)
@@ -88,7 +77,7 @@ def extract_grids(name: str, rgb: np.ndarray, mask: np.ndarray, cfg: FeatureConf
     """The extractor's native feature grids (N, C, h, w) float32 of masked crops (``dinov2``: one cell per patch,
     after the PCA; ``rgb``: the crop itself): what :func:`extract_features` computes before
     :func:`grid_features` brings them to the crop's resolution, and what the features stage stores."""
-    rgb, mask = _check_inputs(rgb, mask)
+    rgb, mask = check_crops(rgb, mask)
     ext = get_extractor(name)
     n = rgb.shape[0]
     if n == 0:
@@ -194,7 +183,7 @@ def extract_feature_shard(collection_shard_dir: str | os.PathLike, index: int, o
     if "rgb" not in arrays or "mask" not in arrays:
         raise ValueError(f"shard {index} of {collection_shard_dir} has no 'rgb'/'mask' arrays; "
                          f"got {sorted(arrays)}")
-    rgb, mask = _check_inputs(arrays["rgb"], arrays["mask"])
+    rgb, mask = check_crops(arrays["rgb"], arrays["mask"])
     ok = ok_mask(table)
     ext = get_extractor(cfg.extractor)
     config_hash = ""
