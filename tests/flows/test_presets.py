@@ -107,8 +107,8 @@ def test_a_cached_rerun_of_the_demo_reads_each_run_file_at_most_once(prefect_har
     data = {f: n for f, n in reads.read_more_than_once().items() if not f.startswith(results)}
     assert data == {}, data
     # Prefect's result store reads a cached task's JSON record twice per lookup (its exists() check loads the payload,
-    # then read() loads it again: ResultStore._exists in prefect/results.py reads the whole record); outside bat3r, and bounded:
-    # metrics and report are looked up once per iteration, every other task once
+    # then read() loads it again: ResultStore._exists in prefect/results.py reads the whole record); outside bat3r,
+    # and bounded: metrics and report are looked up once per iteration, every other task once
     lookups = {"metrics": len(again["iterations"]), "report": len(again["iterations"])}
     records = {f: n for f, n in reads.read_more_than_once().items() if f.startswith(results)}
     assert all(n <= 2 * lookups.get(Path(f).name.rsplit("-", 1)[0], 1) for f, n in records.items()), records
