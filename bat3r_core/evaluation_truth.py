@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from bat3r_core.predictor.collection import CropTransform
 
 __all__ = ["sample_surface", "load_ground_truth", "ground_truth_camera", "evaluate_prediction_shard",
-           "PSEUDO_LABEL_FILE", "pseudo_label_errors", "write_pseudo_label_errors"]
+           "map_floor_rows", "PSEUDO_LABEL_FILE", "pseudo_label_errors", "write_pseudo_label_errors"]
 
 
 # ------------------------------------------------------------------------------------ the evaluate stage
@@ -140,6 +140,48 @@ def evaluate_prediction_shard(predictions_dir: str | os.PathLike, index: int, gr
         rows.append(sample_row(sid, split, iteration, metrics, azimuth_deg=sph.azimuth_deg,
                                elevation_deg=sph.elevation_deg, roll_deg=sph.roll_deg, pose_features=feats))
     return write_sample_rows(out_dir, index, rows)
+
+
+def map_floor_rows(collection_rows: Sequence[Mapping[str, Any]], ground_truth: Mapping[str, Mapping], rig,
+                   num_layers: int, gt_points: int = 2000, seed: int = 0) -> list[dict[str, Any]]:
+    """The test mCD of two ideal predictors, per image of a split with ground truth: how low the metric can go at
+    the split's crop resolution, and how low it goes without knowing the pose.
+
+    * ``perfect_map_cd_cm``: the exact dual point map (ray-cast truth, ``num_layers`` layers, through the image's
+      crop camera) scored like a prediction (:func:`~bat3r_core.metrics.evaluate_sample` against ``gt_points``
+      points on the true posed surface). It is not 0: a K-layer map of R x R pixels holds a few hundred points at
+      R = 32, and the Chamfer distance from the dense surface to them grows with their spacing.
+    * ``rest_pose_map_cd_cm``: the same for the rest-pose mesh rigidly aligned (Kabsch over all vertices) onto the
+      true posed mesh and ray-cast through the same camera: a network that knows the shape and the camera exactly
+      but not the pose (what canonical-only training aims at).
+
+    ``collection_rows``: the split's collection-stage rows (``crop_*`` columns); rows that are not ``ok`` or have
+    no ground truth are skipped. Returns rows ``sample_id, perfect_map_cd_cm, rest_pose_map_cd_cm, n_points``.
+    """
+    from bat3r_core.metrics import evaluate_sample, kabsch
+    from bat3r_core.pointmaps import dual_point_maps
+    from bat3r_core.predictor.collection import crop_transform_from_row
+
+    rest = np.asarray(rig.rest_vertices, np.float64)
+    out = []
+    for k, row in enumerate(collection_rows):
+        gt = ground_truth.get(row["sample_id"])
+        if row["status"] != shards.STATUS_OK or gt is None:
+            continue
+        camera = ground_truth_camera(gt, crop_transform_from_row(dict(row)))
+        posed = np.asarray(gt["posed_vertices"], np.float64)
+        r_cam, t_cam = np.asarray(gt["camera_rotation"], np.float64), np.asarray(gt["camera_translation"], np.float64)
+        target = sample_surface(posed @ r_cam.T + t_cam, rig.faces, gt_points, np.random.default_rng([seed, k]))
+        up = r_cam @ np.asarray(gt["global_rotation"], np.float64) @ np.array([0.0, 1.0, 0.0])
+        figures = {}
+        for name, verts in (("perfect_map_cd_cm", posed), ("rest_pose_map_cd_cm", kabsch(rest, posed).apply(rest))):
+            maps = dual_point_maps(verts, rest, rig.faces, camera, num_layers)
+            points = maps.P[maps.occupancy].astype(np.float64)
+            figures[name] = (float(evaluate_sample(points, target, up=up).cd_cm) if len(points) >= 3
+                             else float("nan"))
+            figures.setdefault("n_points", int(len(points)))
+        out.append({"sample_id": row["sample_id"], **figures})
+    return out
 
 
 PSEUDO_LABEL_FILE = "pseudo_labels.parquet"

@@ -32,6 +32,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -39,6 +41,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from _results import RESULTS_DIR, record  # noqa: E402
 from bench_demo_control import _oracle_dataset, _test_metrics  # noqa: E402
 
+from bat3r_core import evaluation_truth, shards  # noqa: E402
 from bat3r_core.cli import add_catalog_argument, parse_overrides  # noqa: E402
 from bat3r_core.predictor.data import ShardDataset  # noqa: E402
 from bat3r_core.predictor.features import make_feature_fn  # noqa: E402
@@ -106,6 +109,24 @@ def _reference_rounds(settings, name: str, data_fn, iterations: int, run_seed: i
     return rows
 
 
+def map_floors(settings) -> dict[str, float]:
+    """The test mCD of the two ideal predictors of ``evaluation_truth.map_floor_rows`` on the run's test split, at
+    its crop resolution and number of layers (means over the images): ``floor_perfect_map_cm`` (the exact dual point
+    map) and ``floor_rest_pose_map_cm`` (the exact map of the rest pose, rigidly aligned), and their ratio
+    ``best_headroom``, the headroom a perfect oracle would have over a perfect control."""
+    test = settings.layout.run_stage_dir("test")
+    gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
+    rows = evaluation_truth.map_floor_rows(shards.read_table(test).to_pylist(), gt, load_rig(settings.assets.asset),
+                                           num_layers=settings.model.layers)
+    if not rows:
+        raise RuntimeError(f"{test}: no test image with ground truth to compute the map floors of")
+    perfect = float(np.nanmean([r["perfect_map_cd_cm"] for r in rows]))
+    rest = float(np.nanmean([r["rest_pose_map_cd_cm"] for r in rows]))
+    return {"floor_perfect_map_cm": round(perfect, 3), "floor_rest_pose_map_cm": round(rest, 3),
+            "best_headroom": round(perfect / rest, 3),
+            "floor_points_per_image": round(float(np.mean([r["n_points"] for r in rows])), 1)}
+
+
 def gap_recovered(control: float, oracle: float, loop: float) -> float:
     """The fraction of the control → oracle gap in mCD the loop closes (1: as good as the oracle; 0: no better
     than the control; negative: worse). NaN when the oracle is no better than the control (no gap to close)."""
@@ -139,13 +160,17 @@ def verdict_lines(figures: dict[str, float]) -> list[str]:
                      f"{control - oracle:.2f} cm); the loop ({loop:.2f} cm) is "
                      + (f"{loop - control:.2f} cm behind" if loop >= control else f"{control - loop:.2f} cm ahead of")
                      + " the control: recovery goal NOT met")
+    if "floor_perfect_map_cm" in figures:
+        lines.append(f"at this crop resolution exact point maps score {figures['floor_perfect_map_cm']:.2f} cm and "
+                     f"exact rest-pose maps {figures['floor_rest_pose_map_cm']:.2f} cm: a perfect oracle over a "
+                     f"perfect control would have a headroom of {figures['best_headroom']:.3f}")
     lines.append("paper's ablation ordering " + ablation_ordering(
         loop, figures.get(f"mcd_no_view_augmentation_iter{n}"), figures.get(f"mcd_no_fitting_regularisation_iter{n}")))
     return lines
 
 
-def plot(path: Path, arms: dict[str, dict[int, dict]]) -> None:
-    """Test mCD per iteration of each arm (one line per arm)."""
+def plot(path: Path, arms: dict[str, dict[int, dict]], floors: dict[str, float] | None = None) -> None:
+    """Test mCD per iteration of each arm (one line per arm), with the map floors (``map_floors``) as dashed lines."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -155,6 +180,10 @@ def plot(path: Path, arms: dict[str, dict[int, dict]]) -> None:
     for name, rows in arms.items():
         its = sorted(rows)
         ax.plot(its, [rows[i]["mcd_cm"] for i in its], marker="o", label=name)
+    for key, label in (("floor_rest_pose_map_cm", "exact rest-pose maps"), ("floor_perfect_map_cm", "exact maps")):
+        if floors and key in floors:
+            ax.axhline(floors[key], ls="--", lw=1, color="grey")
+            ax.annotate(label, (ax.get_xlim()[0], floors[key]), fontsize=8, color="grey", va="bottom")
     ax.set_xlabel("iteration (rounds of equal training compute)")
     ax.set_ylabel("test mCD (cm)")
     ax.set_xticks(sorted({i for rows in arms.values() for i in rows}))
@@ -215,6 +244,7 @@ def main(argv: list[str] | None = None) -> dict:
                     "loop_over_control": round(last["loop"] / last["control"], 3)})
     if recovered == recovered:  # NaN (no gap to recover) is left out
         figures["loop_gap_recovered"] = round(recovered, 3)
+    figures.update(map_floors(settings))
     verdicts = verdict_lines(figures)
     for line in verdicts:
         print(line, flush=True)
@@ -228,7 +258,7 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         args.results_dir.mkdir(parents=True, exist_ok=True)
         (args.results_dir / f"{args.record_as}.json").write_text(json.dumps({**figures, "notes": notes}, indent=2))
-    plot(args.results_dir / f"{args.record_as}.png", arms)
+    plot(args.results_dir / f"{args.record_as}.png", arms, figures)
     return figures
 
 

@@ -13,7 +13,7 @@ __all__ = ["extract_features_shard"]
 
 
 @stage_task("features", inputs=lambda p: shard_input_files(p["input_dir"], p["index"]),
-            output=lambda p: Path(p["out_dir"]) / f"part-{p['index']:05d}", spec=features.FeatureConfig)
+            output=lambda p: Path(p["out_dir"]) / f"part-{p['index']:05d}", spec=features.FeatureConfig, retries=2)
 def extract_features_shard(input_dir: str, index: int, out_dir: str,
                            config: features.FeatureConfig | Mapping[str, Any]) -> dict:
     """Features (``bat3r_core.predictor.features.extract_feature_shard``) of shard ``index`` of ``input_dir``

@@ -280,3 +280,59 @@ def test_collection_rows_aggregate_into_metrics_rows(toy_rig, tmp_path):
     assert c0["pred_mask_iou"] == pytest.approx(0.75) and c0["n_fits"] == 0 and c0["fit_mask_iou"] is None
     assert c1["mcd_cm"] is None                                  # no 3D ground truth on the collection
     assert by_key[1, "test"]["mcd_cm"] == pytest.approx(2.0) and by_key[1, "test"]["pred_mask_iou"] is None
+
+
+# ------------------------------------------------------------------ what the test mCD can reach at a resolution
+
+
+def _floor_sample(toy_rig, theta, resolution, seed):
+    """Ground truth and a collection row of the toy in pose ``theta``, seen through a mask-fitted crop."""
+    import torch
+
+    from bat3r_core.cameras import PinholeCamera, look_at
+    from bat3r_core.metrics import rotation_about_axis
+    from bat3r_core.pointmaps import dual_point_maps
+    from bat3r_core.predictor.collection import crop_box_for_mask
+    from bat3r_core.skinning import skin
+
+    r_g = rotation_about_axis(np.array([0.0, 1.0, 0.0]), 70.0 + seed)
+    verts = skin(toy_rig.tensors(dtype=torch.float64), torch.as_tensor(theta)[None]).vertices[0].numpy()
+    world = verts @ r_g.T + np.array([0.3, 0.0, -0.2])
+    r_c, t_c = look_at(np.array([3.0, 1.5, 6.0]), world.mean(axis=0), np.array([0.0, 1.0, 0.0]))
+    photo = PinholeCamera.from_fov(35.0, 256, 256, R=r_c, t=t_c)
+    mask = dual_point_maps(world, toy_rig.rest_vertices, toy_rig.faces, photo, num_layers=1).occupancy[..., 0]
+    x0, y0, size = crop_box_for_mask(mask)
+    gt = {"K": photo.K, "camera_rotation": r_c, "camera_translation": t_c, "posed_vertices": world,
+          "global_rotation": r_g}
+    row = {"sample_id": f"s{seed}", "status": "ok", "crop_x0": x0, "crop_y0": y0, "crop_size": size,
+           "resolution": resolution}
+    return gt, row
+
+
+def test_map_floors_fall_with_resolution_and_only_the_rest_pose_pays_for_the_pose(toy_rig):
+    from bat3r_core.poses import sample_toy_natural_poses
+
+    theta, _ = sample_toy_natural_poses(4, seed=11)
+    theta[0] = 0.0                                       # sample 0 is in the rest pose
+    floors = {}
+    for res in (32, 64):
+        gts, rows = {}, []
+        for i in range(4):
+            gt, row = _floor_sample(toy_rig, theta[i], res, i)
+            gts[row["sample_id"]] = gt
+            rows.append(row)
+        rows.append({"sample_id": "s9", "status": "too_few_points"})          # skipped
+        rows.append({**rows[0], "sample_id": "unknown"})                     # no ground truth: skipped
+        floors[res] = {r["sample_id"]: r for r in T.map_floor_rows(rows, gts, toy_rig, num_layers=4, seed=3)}
+    for res, out in floors.items():
+        assert set(out) == {"s0", "s1", "s2", "s3"}
+        # the rest pose is its own best rest-pose prediction: both ideal maps are the same map
+        assert out["s0"]["rest_pose_map_cd_cm"] == pytest.approx(out["s0"]["perfect_map_cd_cm"], abs=1e-3)
+        for s in ("s1", "s2", "s3"):
+            assert out[s]["rest_pose_map_cd_cm"] > out[s]["perfect_map_cd_cm"] + 0.5
+        assert 100 < out["s1"]["n_points"] < res * res * 4
+    # a finer map holds ~4x the points, so its perfect-prediction floor drops markedly; it is never 0 at 32 px
+    for s in ("s0", "s1", "s2", "s3"):
+        assert floors[64][s]["n_points"] > 3 * floors[32][s]["n_points"]
+        assert floors[64][s]["perfect_map_cd_cm"] < 0.75 * floors[32][s]["perfect_map_cd_cm"]
+        assert floors[32][s]["perfect_map_cd_cm"] > 2.0

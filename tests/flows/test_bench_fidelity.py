@@ -68,7 +68,12 @@ def test_the_bench_preset_runs_every_arm_from_one_phi0(bench_run, catalog):
     assert kept and {j["source_id"] for j in loop_jobs if j["view_kind"] == "estimated"} == kept
     assert figures["mcd_no_pseudo_label_filter_iter0"] == figures["mcd_loop_iter0"]  # same Φ₀, same test split
     assert (abl.stage_dir(1, "train") / "predictor.pt").is_file()
+    # the floors of the test split at the preset's 32 px crops: exact maps beat exact rest-pose maps, and neither is 0
+    assert 1.0 < figures["floor_perfect_map_cm"] < figures["floor_rest_pose_map_cm"]
+    assert figures["best_headroom"] == pytest.approx(
+        figures["floor_perfect_map_cm"] / figures["floor_rest_pose_map_cm"], abs=2e-3)
     saved = json.loads((out / "fidelity.json").read_text())
+    assert "perfect oracle over a perfect control" in saved["notes"]
     assert saved["mcd_loop_iter1"] == figures["mcd_loop_iter1"] and "headroom" in saved["notes"]
     assert (out / "fidelity.png").stat().st_size > 5000
 
@@ -129,3 +134,7 @@ def test_verdicts_follow_the_recorded_figures():
     flat = B.verdict_lines({"iterations": 2, "mcd_loop_iter2": 11.07, "mcd_control_iter2": 10.40,
                             "mcd_oracle_iter2": 10.37})
     assert "NOT met" in flat[0] and "not meaningful" in flat[1] and "0.67 cm behind the control" in flat[1]
+    floored = B.verdict_lines({**figs, "floor_perfect_map_cm": 5.73, "floor_rest_pose_map_cm": 8.14,
+                               "best_headroom": 0.704})
+    assert "exact point maps score 5.73 cm and exact rest-pose maps 8.14 cm" in floored[2]
+    assert floored[2].endswith("headroom of 0.704") and floored[3].startswith("paper's ablation ordering holds")
