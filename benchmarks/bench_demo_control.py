@@ -44,17 +44,24 @@ from bat3r_core.rig_io import load_rig  # noqa: E402
 from flows._settings import recorded_run  # noqa: E402
 
 
-def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: int) -> dict:
+def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: int, split: str = "test") -> dict:
     """The test-split metrics row of ``predictor`` (``evaluation.aggregate``), computed as the loop's test_infer and
-    evaluate stages compute them for ``iteration`` (same features, ground truth and sampling seed)."""
-    predict_collection(predictor, settings.layout.run_stage_dir("test"), out / "test_infer",
+    evaluate stages compute them for ``iteration`` (same features, ground truth and sampling seed).
+    ``split="collection"`` scores the collection's own images against their hidden truth the same way."""
+    if split not in ("test", "collection"):
+        raise ValueError(f"split: expected 'test' or 'collection', got {split!r}")
+    truth = (settings.test_split if split == "test" else settings.collection).get("ground_truth")
+    if not truth:
+        raise ValueError(f"the {split} split of the run's category has no ground_truth folder in the catalog")
+    evaluate_dir = out / ("evaluate" if split == "test" else f"evaluate_{split}")
+    predict_collection(predictor, settings.layout.run_stage_dir(split), out / f"{split}_infer",
                        feature_fn=make_feature_fn(settings.features), device="cpu")
-    gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
+    gt = evaluation_truth.load_ground_truth(Path(truth) / "ground_truth.npz")
     rig = load_rig(settings.assets.asset)
-    for i in shards.list_shards(out / "test_infer"):
-        evaluation_truth.evaluate_prediction_shard(out / "test_infer", i, gt, rig, settings.body_frame, "test", iteration,
-                                             out / "evaluate", seed=seed)
-    return evaluation.aggregate(shards.read_table(out / "evaluate"))[0]
+    for i in shards.list_shards(out / f"{split}_infer"):
+        evaluation_truth.evaluate_prediction_shard(out / f"{split}_infer", i, gt, rig, settings.body_frame, split,
+                                                   iteration, evaluate_dir, seed=seed)
+    return evaluation.aggregate(shards.read_table(evaluate_dir))[0]
 
 
 def true_fit_rows(collection_rows: list[dict], ground_truth: dict) -> list[dict]:

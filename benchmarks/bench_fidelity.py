@@ -12,6 +12,11 @@ each evaluated on the same test split with the loop's own metrics (``bat3r_core.
 ``--ablations`` adds the paper's ablations of the loop, each a bootstrap run starting from the same Φ₀
 (``init_predictor``): no fitting regularisation, no view augmentation, no pseudo-label filter.
 
+Two figures say what limits the headroom when there is little: the **map floors** (``map_floors``: the test mCD of
+exact point maps and of exact rest-pose maps at the run's crop resolution, the best any oracle and any control can
+score) and the **training fit** (``training_fit``: the oracle's last round and Φ₀ scored on the collection images
+the oracle was trained on; an oracle about as far off there as on the test split under-fits).
+
 Every arm is resumable: the loop and the ablations are flow runs (``runs/toy/<run name>[-<ablation>]``, cached
 stages), the control and oracle rounds keep their checkpoints and metrics under ``runs/toy/<run name>/fidelity/``.
 Results: ``benchmarks/results/<record-as>.json`` (test mCD, % > 5 cm and ΔR per arm and iteration; the headroom
@@ -55,6 +60,9 @@ HEADROOM_GOAL = 0.75
 """The benchmark means something only when the oracle's last mCD is at most this fraction of the control's."""
 RECOVERY_GOAL = 0.5
 """The loop's last iteration must recover at least this fraction of the control → oracle gap in test mCD."""
+
+UNDERFIT_RATIO = 0.9
+"""An oracle whose mCD on its own training images is at least this fraction of its test mCD under-fits them."""
 
 _FIGURES = (("mcd", "mcd_cm", 3), ("pct_over_5cm", "pct_mcd_over_5cm", 1), ("rot_err_deg", "rot_err_deg", 1))
 
@@ -127,6 +135,25 @@ def map_floors(settings) -> dict[str, float]:
             "floor_points_per_image": round(float(np.mean([r["n_points"] for r in rows])), 1)}
 
 
+def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed: int) -> dict[str, float]:
+    """Does the network fit the images it was trained on? Each of ``predictors`` (name → checkpoint: the oracle's
+    last round, Φ₀) scored like the test split on the collection's own images against their hidden truth — the
+    oracle's training set: ``mcd_<name>_on_collection``. An oracle that scores about as badly on its training images
+    as on the test split under-fits, and no choice of training poses (the loop's, the truth's) can then widen the
+    headroom at this compute. Cached in ``fidelity/on_collection/<name>/metrics.json``."""
+    figures = {}
+    for name, checkpoint in predictors.items():
+        out = settings.layout.root / "fidelity" / "on_collection" / name
+        cached = out / "metrics.json"
+        if cached.is_file():
+            row = json.loads(cached.read_text())
+        else:
+            row = _test_metrics(settings, checkpoint, out, iteration, seed=run_seed + iteration, split="collection")
+            cached.write_text(json.dumps(row, default=float))
+        figures[f"mcd_{name}_on_collection"] = round(float(row["mcd_cm"]), 3)
+    return figures
+
+
 def gap_recovered(control: float, oracle: float, loop: float) -> float:
     """The fraction of the control → oracle gap in mCD the loop closes (1: as good as the oracle; 0: no better
     than the control; negative: worse). NaN when the oracle is no better than the control (no gap to close)."""
@@ -164,6 +191,15 @@ def verdict_lines(figures: dict[str, float]) -> list[str]:
         lines.append(f"at this crop resolution exact point maps score {figures['floor_perfect_map_cm']:.2f} cm and "
                      f"exact rest-pose maps {figures['floor_rest_pose_map_cm']:.2f} cm: a perfect oracle over a "
                      f"perfect control would have a headroom of {figures['best_headroom']:.3f}")
+    if "mcd_oracle_on_collection" in figures:
+        train, test = figures["mcd_oracle_on_collection"], oracle
+        start = figures.get("mcd_phi0_on_collection")
+        lines.append(f"on the collection images it was trained on (true labels) the oracle scores {train:.2f} cm "
+                     + (f"(Φ₀: {start:.2f}) " if start is not None else "") + f"against {test:.2f} on the test "
+                     "split: " + ("it fits its training images better than unseen ones"
+                                  if train < UNDERFIT_RATIO * test else
+                                  "it under-fits even its training images, so the network's capacity to learn at "
+                                  "this compute, not the poses it is shown, sets the test error"))
     lines.append("paper's ablation ordering " + ablation_ordering(
         loop, figures.get(f"mcd_no_view_augmentation_iter{n}"), figures.get(f"mcd_no_fitting_regularisation_iter{n}")))
     return lines
@@ -245,6 +281,9 @@ def main(argv: list[str] | None = None) -> dict:
     if recovered == recovered:  # NaN (no gap to recover) is left out
         figures["loop_gap_recovered"] = round(recovered, 3)
     figures.update(map_floors(settings))
+    figures.update(training_fit(settings, {"oracle": settings.layout.root / "fidelity" / "oracle" /
+                                           f"round-{iterations:02d}" / "train" / "predictor.pt", "phi0": phi0},
+                                iterations, run_seed))
     verdicts = verdict_lines(figures)
     for line in verdicts:
         print(line, flush=True)

@@ -72,8 +72,14 @@ def test_the_bench_preset_runs_every_arm_from_one_phi0(bench_run, catalog):
     assert 1.0 < figures["floor_perfect_map_cm"] < figures["floor_rest_pose_map_cm"]
     assert figures["best_headroom"] == pytest.approx(
         figures["floor_perfect_map_cm"] / figures["floor_rest_pose_map_cm"], abs=2e-3)
+    # the oracle and Φ₀ scored on the collection's own images (the oracle's training set), cached per predictor
+    for name in ("oracle", "phi0"):
+        assert 0.0 < figures[f"mcd_{name}_on_collection"] < 100.0
+        cached = json.loads((layout.root / "fidelity" / "on_collection" / name / "metrics.json").read_text())
+        assert cached["split"] == "collection" and cached["n"] + cached["n_failed"] == 8
     saved = json.loads((out / "fidelity.json").read_text())
     assert "perfect oracle over a perfect control" in saved["notes"]
+    assert "on the collection images it was trained on" in saved["notes"]
     assert saved["mcd_loop_iter1"] == figures["mcd_loop_iter1"] and "headroom" in saved["notes"]
     assert (out / "fidelity.png").stat().st_size > 5000
 
@@ -92,6 +98,11 @@ def test_finished_reference_rounds_are_not_trained_again(bench_run, catalog):
     rows = B._reference_rounds(settings, "control", no_data, 1, 0)
     assert ckpt.stat().st_mtime_ns == before
     assert round(rows[1]["mcd_cm"], 3) == figures["mcd_control_iter1"]
+    # the training-set scores are cached too: a missing checkpoint is not even opened on a rerun
+    again = B.training_fit(settings, {"oracle": settings.layout.root / "nope.pt"}, 1, 0)
+    assert again == {"mcd_oracle_on_collection": figures["mcd_oracle_on_collection"]}
+    with pytest.raises(ValueError, match="split: expected 'test' or 'collection', got 'train'"):
+        B._test_metrics(settings, ckpt, settings.layout.root / "unused", 1, 0, split="train")
 
 
 def test_gap_recovered_and_ablation_ordering():
@@ -138,3 +149,11 @@ def test_verdicts_follow_the_recorded_figures():
                                "best_headroom": 0.704})
     assert "exact point maps score 5.73 cm and exact rest-pose maps 8.14 cm" in floored[2]
     assert floored[2].endswith("headroom of 0.704") and floored[3].startswith("paper's ablation ordering holds")
+    underfit = B.verdict_lines({**figs, "mcd_oracle_on_collection": 5.7, "mcd_phi0_on_collection": 6.5})
+    assert underfit[2] == ("on the collection images it was trained on (true labels) the oracle scores 5.70 cm "
+                           "(Φ₀: 6.50) against 6.00 on the test split: it under-fits even its training images, so "
+                           "the network's capacity to learn at this compute, not the poses it is shown, sets the "
+                           "test error")
+    fits = B.verdict_lines({**figs, "mcd_oracle_on_collection": 4.0})
+    assert fits[2].endswith("4.00 cm against 6.00 on the test split: it fits its training images better than unseen "
+                            "ones") and fits[3].startswith("paper's ablation ordering holds")
