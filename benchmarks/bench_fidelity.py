@@ -92,12 +92,14 @@ def _run_loop(category: str, preset: str, run_name: str, overrides: dict, iterat
     return rows
 
 
-def _reference_rounds(settings, name: str, data_fn, iterations: int, run_seed: int) -> dict[int, dict]:
-    """Φ₀ trained on ``data_fn(out)`` for ``iterations`` warm-started rounds of the run's schedule; the test
-    metrics row of each round (cached in ``round-NN/metrics.json``: a rerun only trains the missing rounds)."""
+def _reference_rounds(settings, name: str, data_fn, iterations: int, run_seed: int,
+                      start: Path | None = None) -> dict[int, dict]:
+    """Φ₀ (the run's own, or ``start``) trained on ``data_fn(out)`` for ``iterations`` warm-started rounds of the
+    run's schedule; the test metrics row of each round (cached in ``round-NN/metrics.json``: a rerun only trains the
+    missing rounds)."""
     layout = settings.layout
     out = layout.root / "fidelity" / name
-    previous = layout.stage_dir(0, "train") / "predictor.pt"
+    previous = start or layout.stage_dir(0, "train") / "predictor.pt"
     dataset, rows = None, {}
     for it in range(1, iterations + 1):
         o = out / f"round-{it:02d}"
@@ -154,6 +156,30 @@ def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed
     return figures
 
 
+def larger_oracles(args, overrides: dict, catalog: str | None, phi0: Path, iterations: int,
+                   run_seed: int) -> tuple[dict[str, dict[int, dict]], dict[str, float]]:
+    """The oracle again with ``--oracle-sizes`` collections of N images (same Φ₀, rounds and test split): does the
+    headroom grow with the number of distinct posed training images? Each size is a run of its own,
+    ``<run name>-oracle-n<N>`` (iteration 0 only evaluates Φ₀; its collection is rendered from the catalog's seed),
+    with the oracle rounds under its ``fidelity/oracle``. Returns arms ``oracle_n<N>`` and figures
+    ``mcd_oracle_n<N>_iter<i>``, ``mcd_oracle_n<N>_on_collection``."""
+    from flows._settings import resolve_run
+
+    arms, figures = {}, {}
+    for n in args.oracle_sizes:
+        name = f"{args.run_name or args.preset}-oracle-n{n}"
+        sized = {**overrides, "run.collection_size": n}
+        start = _run_loop("toy", args.preset, name, sized, 0, catalog, init_predictor=str(phi0))
+        settings = resolve_run("toy", args.preset, name, sized, catalog=catalog)
+        rows = _reference_rounds(settings, "oracle", lambda out, s=settings: _oracle_dataset(
+            s, load_rig(s.assets.asset), out), iterations, run_seed, start=phi0)
+        arms[f"oracle_n{n}"] = {0: start[0], **rows}
+        last = settings.layout.root / "fidelity" / "oracle" / f"round-{iterations:02d}" / "train" / "predictor.pt"
+        fit = training_fit(settings, {"oracle": last}, iterations, run_seed)
+        figures[f"mcd_oracle_n{n}_on_collection"] = fit["mcd_oracle_on_collection"]
+    return arms, figures
+
+
 def gap_recovered(control: float, oracle: float, loop: float) -> float:
     """The fraction of the control → oracle gap in mCD the loop closes (1: as good as the oracle; 0: no better
     than the control; negative: worse). NaN when the oracle is no better than the control (no gap to close)."""
@@ -200,6 +226,12 @@ def verdict_lines(figures: dict[str, float]) -> list[str]:
                                   if train < UNDERFIT_RATIO * test else
                                   "it under-fits even its training images, so the network's capacity to learn at "
                                   "this compute, not the poses it is shown, sets the test error"))
+    for key in sorted(k for k in figures if k.startswith("mcd_oracle_n") and k.endswith(f"_iter{n}")):
+        size = key[len("mcd_oracle_n"):-len(f"_iter{n}")]
+        lines.append(f"with {size} collection images the oracle reaches {figures[key]:.2f} cm (headroom "
+                     f"{figures[key] / control:.3f}"
+                     + (f"; {figures[f'mcd_oracle_n{size}_on_collection']:.2f} cm on its training images"
+                        if f"mcd_oracle_n{size}_on_collection" in figures else "") + ")")
     lines.append("paper's ablation ordering " + ablation_ordering(
         loop, figures.get(f"mcd_no_view_augmentation_iter{n}"), figures.get(f"mcd_no_fitting_regularisation_iter{n}")))
     return lines
@@ -241,6 +273,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--ablations", nargs="*", default=None, choices=ABLATIONS, metavar="ABLATION",
                    help="also run the loop's ablations from the same Φ₀ (no names: all of " + ", ".join(ABLATIONS)
                         + ")")
+    p.add_argument("--oracle-sizes", nargs="+", type=int, default=[], metavar="N",
+                   help="also train the oracle on generated collections of N images each (does the headroom grow "
+                        "with the number of distinct posed images?)")
     p.add_argument("--record-as", default="fidelity", help="name of results/<name>.json and .png")
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR,
                    help="folder of the json and plot (default: benchmarks/results, which also refreshes RESULTS.md)")
@@ -255,6 +290,8 @@ def main(argv: list[str] | None = None) -> dict:
     iterations = settings.iterations if args.iterations is None else args.iterations
     if iterations < 1:
         p.error("--iterations must be >= 1: the arms differ only after iteration 0")
+    if any(n < 1 for n in args.oracle_sizes):
+        p.error("--oracle-sizes: expected collection sizes >= 1")
 
     loop = _run_loop("toy", args.preset, run_name, overrides, iterations, catalog)
     phi0 = settings.layout.stage_dir(0, "train") / "predictor.pt"
@@ -270,6 +307,9 @@ def main(argv: list[str] | None = None) -> dict:
         arms[name] = _run_loop("toy", args.preset, f"{run_name}-{name}", overrides, iterations, catalog,
                                init_predictor=str(phi0), **{name: True})
 
+    sized_arms, sized_figures = larger_oracles(args, overrides, catalog, phi0, iterations, run_seed)
+    arms.update(sized_arms)
+
     figures: dict[str, float] = {"iterations": iterations}
     for arm, rows in arms.items():
         for it in sorted(rows):
@@ -284,6 +324,7 @@ def main(argv: list[str] | None = None) -> dict:
     figures.update(training_fit(settings, {"oracle": settings.layout.root / "fidelity" / "oracle" /
                                            f"round-{iterations:02d}" / "train" / "predictor.pt", "phi0": phi0},
                                 iterations, run_seed))
+    figures.update(sized_figures)
     verdicts = verdict_lines(figures)
     for line in verdicts:
         print(line, flush=True)

@@ -31,7 +31,8 @@ ARGS = ["--preset", "bench", "--run-name", "bt", "--iterations", "1",
 @pytest.fixture(scope="module")
 def bench_run(prefect_harness, catalog, tmp_path_factory):
     out = tmp_path_factory.mktemp("fidelity")
-    figures = B.main([*ARGS, "--ablations", "no_pseudo_label_filter", "--results-dir", str(out)])
+    figures = B.main([*ARGS, "--ablations", "no_pseudo_label_filter", "--oracle-sizes", "12", "--results-dir",
+                      str(out)])
     return figures, out
 
 
@@ -77,7 +78,17 @@ def test_the_bench_preset_runs_every_arm_from_one_phi0(bench_run, catalog):
         assert 0.0 < figures[f"mcd_{name}_on_collection"] < 100.0
         cached = json.loads((layout.root / "fidelity" / "on_collection" / name / "metrics.json").read_text())
         assert cached["split"] == "collection" and cached["n"] + cached["n_failed"] == 8
+    # --oracle-sizes 12: the oracle again from the same Φ₀ on a collection of 12 images, a run of its own
+    sized = RunLayout(catalog / "runs", "toy", "bt-oracle-n12")
+    assert read_manifest(sized)["config"]["parameters"]["init_predictor"] == str(
+        (layout.stage_dir(0, "train") / "predictor.pt").resolve())
+    assert shards.read_table(sized.run_stage_dir("collection")).num_rows == 12
+    assert (sized.root / "fidelity" / "oracle" / "round-01" / "train" / "predictor.pt").is_file()
+    assert figures["mcd_oracle_n12_iter0"] == figures["mcd_loop_iter0"]
+    assert math.isfinite(figures["mcd_oracle_n12_iter1"])
+    assert json.loads((sized.root / "fidelity" / "on_collection" / "oracle" / "metrics.json").read_text())["n"] > 0
     saved = json.loads((out / "fidelity.json").read_text())
+    assert "with 12 collection images the oracle reaches" in saved["notes"]
     assert "perfect oracle over a perfect control" in saved["notes"]
     assert "on the collection images it was trained on" in saved["notes"]
     assert saved["mcd_loop_iter1"] == figures["mcd_loop_iter1"] and "headroom" in saved["notes"]
@@ -154,6 +165,9 @@ def test_verdicts_follow_the_recorded_figures():
                            "(Φ₀: 6.50) against 6.00 on the test split: it under-fits even its training images, so "
                            "the network's capacity to learn at this compute, not the poses it is shown, sets the "
                            "test error")
+    sized = B.verdict_lines({**figs, "mcd_oracle_n1536_iter2": 5.0, "mcd_oracle_n1536_on_collection": 4.5})
+    assert sized[2] == ("with 1536 collection images the oracle reaches 5.00 cm (headroom 0.500; 4.50 cm on its "
+                        "training images)")
     fits = B.verdict_lines({**figs, "mcd_oracle_on_collection": 4.0})
     assert fits[2].endswith("4.00 cm against 6.00 on the test split: it fits its training images better than unseen "
                             "ones") and fits[3].startswith("paper's ablation ordering holds")
