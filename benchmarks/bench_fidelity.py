@@ -25,8 +25,8 @@ Results: ``benchmarks/results/<record-as>.json`` (test mCD, % > 5 cm and ΔR per
 
     python benchmarks/bench_fidelity.py [--preset bench] [--run-name bench] [--ablations] [--set KEY=VALUE ...]
 
-Measured: 65 min on 2 CPU cores at the ``bench`` preset without ablations (collection and test split rendered
-from scratch); each ablation adds about 20 min.
+Measured: 48 min on 2 AMD EPYC cores (65 min on 2 Intel Xeon cores) at the ``bench`` preset without ablations
+(collection and test split rendered from scratch); each ablation adds about 20 min, ``--oracle-sizes 1536`` 14 min.
 """
 from __future__ import annotations
 
@@ -92,30 +92,46 @@ def _run_loop(category: str, preset: str, run_name: str, overrides: dict, iterat
     return rows
 
 
+def _round_checkpoint(settings, name: str, iteration: int) -> Path:
+    """The checkpoint of round ``iteration`` of reference arm ``name`` (``fidelity/<name>/round-NN``)."""
+    return settings.layout.root / "fidelity" / name / f"round-{iteration:02d}" / "train" / "predictor.pt"
+
+
+def _cached_row(path: Path, compute) -> dict:
+    """The JSON row at ``path``, or ``compute()`` written there first: what lets a rerun skip finished work. Rows
+    are reused by path only (changed settings need a new run name)."""
+    if path.is_file():
+        return json.loads(path.read_text())
+    row = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(row, default=float))
+    return row
+
+
 def _reference_rounds(settings, name: str, data_fn, iterations: int, run_seed: int,
                       start: Path | None = None) -> dict[int, dict]:
     """Φ₀ (the run's own, or ``start``) trained on ``data_fn(out)`` for ``iterations`` warm-started rounds of the
     run's schedule; the test metrics row of each round (cached in ``round-NN/metrics.json``: a rerun only trains the
     missing rounds)."""
-    layout = settings.layout
-    out = layout.root / "fidelity" / name
-    previous = start or layout.stage_dir(0, "train") / "predictor.pt"
+    out = settings.layout.root / "fidelity" / name
+    previous = start or settings.layout.stage_dir(0, "train") / "predictor.pt"
     dataset, rows = None, {}
-    for it in range(1, iterations + 1):
-        o = out / f"round-{it:02d}"
-        cached = o / "metrics.json"
-        if cached.is_file():
-            rows[it] = json.loads(cached.read_text())
-            previous = o / "train" / "predictor.pt"
-            continue
+
+    def train_and_test(it: int, o: Path) -> dict:
+        nonlocal dataset
         if dataset is None:
             dataset = ShardDataset(data_fn(out), make_feature_fn(settings.features),
                                    cache_shards=settings.train.shuffle_shards)
-        previous = Trainer(dataset, settings.model, settings.train, o / "train", device="cpu",
-                           init_from=previous).train()
-        rows[it] = _test_metrics(settings, previous, o, it, seed=run_seed + it)  # the loop evaluates i: seed + i
-        cached.write_text(json.dumps(rows[it], default=float))
-        print(f"{name} round {it}: test mCD {rows[it]['mcd_cm']:.2f} cm", flush=True)
+        checkpoint = Trainer(dataset, settings.model, settings.train, o / "train", device="cpu",
+                             init_from=previous).train()
+        row = _test_metrics(settings, checkpoint, o, it, seed=run_seed + it)  # the loop evaluates i: seed + i
+        print(f"{name} round {it}: test mCD {row['mcd_cm']:.2f} cm", flush=True)
+        return row
+
+    for it in range(1, iterations + 1):
+        o = out / f"round-{it:02d}"
+        rows[it] = _cached_row(o / "metrics.json", lambda: train_and_test(it, o))
+        previous = _round_checkpoint(settings, name, it)
     return rows
 
 
@@ -123,18 +139,23 @@ def map_floors(settings) -> dict[str, float]:
     """The test mCD of the two ideal predictors of ``evaluation_truth.map_floor_rows`` on the run's test split, at
     its crop resolution and number of layers (means over the images): ``floor_perfect_map_cm`` (the exact dual point
     map) and ``floor_rest_pose_map_cm`` (the exact map of the rest pose, rigidly aligned), and their ratio
-    ``best_headroom``, the headroom a perfect oracle would have over a perfect control."""
+    ``best_headroom``, the headroom a perfect oracle would have over a perfect control. Cached in
+    ``fidelity/floors.json``."""
     test = settings.layout.run_stage_dir("test")
-    gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
-    rows = evaluation_truth.map_floor_rows(shards.read_table(test).to_pylist(), gt, load_rig(settings.assets.asset),
-                                           num_layers=settings.model.layers)
-    if not rows:
-        raise RuntimeError(f"{test}: no test image with ground truth to compute the map floors of")
-    perfect = float(np.nanmean([r["perfect_map_cd_cm"] for r in rows]))
-    rest = float(np.nanmean([r["rest_pose_map_cd_cm"] for r in rows]))
-    return {"floor_perfect_map_cm": round(perfect, 3), "floor_rest_pose_map_cm": round(rest, 3),
-            "best_headroom": round(perfect / rest, 3),
-            "floor_points_per_image": round(float(np.mean([r["n_points"] for r in rows])), 1)}
+
+    def compute() -> dict:
+        gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
+        rows = evaluation_truth.map_floor_rows(shards.read_table(test).to_pylist(), gt,
+                                               load_rig(settings.assets.asset), num_layers=settings.model.layers)
+        if not rows:
+            raise RuntimeError(f"{test}: no test image with ground truth to compute the map floors of")
+        perfect = float(np.nanmean([r["perfect_map_cd_cm"] for r in rows]))
+        rest = float(np.nanmean([r["rest_pose_map_cd_cm"] for r in rows]))
+        return {"floor_perfect_map_cm": round(perfect, 3), "floor_rest_pose_map_cm": round(rest, 3),
+                "best_headroom": round(perfect / rest, 3),
+                "floor_points_per_image": round(float(np.mean([r["n_points"] for r in rows])), 1)}
+
+    return _cached_row(settings.layout.root / "fidelity" / "floors.json", compute)
 
 
 def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed: int) -> dict[str, float]:
@@ -146,18 +167,14 @@ def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed
     figures = {}
     for name, checkpoint in predictors.items():
         out = settings.layout.root / "fidelity" / "on_collection" / name
-        cached = out / "metrics.json"
-        if cached.is_file():
-            row = json.loads(cached.read_text())
-        else:
-            row = _test_metrics(settings, checkpoint, out, iteration, seed=run_seed + iteration, split="collection")
-            cached.write_text(json.dumps(row, default=float))
+        row = _cached_row(out / "metrics.json", lambda: _test_metrics(
+            settings, checkpoint, out, iteration, seed=run_seed + iteration, split="collection"))
         figures[f"mcd_{name}_on_collection"] = round(float(row["mcd_cm"]), 3)
     return figures
 
 
-def larger_oracles(args, overrides: dict, catalog: str | None, phi0: Path, iterations: int,
-                   run_seed: int) -> tuple[dict[str, dict[int, dict]], dict[str, float]]:
+def larger_oracles(sizes: list[int], preset: str, run_name: str, overrides: dict, catalog: str | None, phi0: Path,
+                   iterations: int, run_seed: int) -> tuple[dict[str, dict[int, dict]], dict[str, float]]:
     """The oracle again with ``--oracle-sizes`` collections of N images (same Φ₀, rounds and test split): does the
     headroom grow with the number of distinct posed training images? Each size is a run of its own,
     ``<run name>-oracle-n<N>`` (iteration 0 only evaluates Φ₀; its collection is rendered from the catalog's seed),
@@ -166,16 +183,16 @@ def larger_oracles(args, overrides: dict, catalog: str | None, phi0: Path, itera
     from flows._settings import resolve_run
 
     arms, figures = {}, {}
-    for n in args.oracle_sizes:
-        name = f"{args.run_name or args.preset}-oracle-n{n}"
+    for n in sizes:
+        name = f"{run_name}-oracle-n{n}"
         sized = {**overrides, "run.collection_size": n}
-        start = _run_loop("toy", args.preset, name, sized, 0, catalog, init_predictor=str(phi0))
-        settings = resolve_run("toy", args.preset, name, sized, catalog=catalog)
+        start = _run_loop("toy", preset, name, sized, 0, catalog, init_predictor=str(phi0))
+        settings = resolve_run("toy", preset, name, sized, catalog=catalog)
         rows = _reference_rounds(settings, "oracle", lambda out, s=settings: _oracle_dataset(
             s, load_rig(s.assets.asset), out), iterations, run_seed, start=phi0)
         arms[f"oracle_n{n}"] = {0: start[0], **rows}
-        last = settings.layout.root / "fidelity" / "oracle" / f"round-{iterations:02d}" / "train" / "predictor.pt"
-        fit = training_fit(settings, {"oracle": last}, iterations, run_seed)
+        fit = training_fit(settings, {"oracle": _round_checkpoint(settings, "oracle", iterations)}, iterations,
+                           run_seed)
         figures[f"mcd_oracle_n{n}_on_collection"] = fit["mcd_oracle_on_collection"]
     return arms, figures
 
@@ -307,7 +324,8 @@ def main(argv: list[str] | None = None) -> dict:
         arms[name] = _run_loop("toy", args.preset, f"{run_name}-{name}", overrides, iterations, catalog,
                                init_predictor=str(phi0), **{name: True})
 
-    sized_arms, sized_figures = larger_oracles(args, overrides, catalog, phi0, iterations, run_seed)
+    sized_arms, sized_figures = larger_oracles(args.oracle_sizes, args.preset, run_name, overrides, catalog, phi0,
+                                               iterations, run_seed)
     arms.update(sized_arms)
 
     figures: dict[str, float] = {"iterations": iterations}
@@ -321,8 +339,7 @@ def main(argv: list[str] | None = None) -> dict:
     if recovered == recovered:  # NaN (no gap to recover) is left out
         figures["loop_gap_recovered"] = round(recovered, 3)
     figures.update(map_floors(settings))
-    figures.update(training_fit(settings, {"oracle": settings.layout.root / "fidelity" / "oracle" /
-                                           f"round-{iterations:02d}" / "train" / "predictor.pt", "phi0": phi0},
+    figures.update(training_fit(settings, {"oracle": _round_checkpoint(settings, "oracle", iterations), "phi0": phi0},
                                 iterations, run_seed))
     figures.update(sized_figures)
     verdicts = verdict_lines(figures)

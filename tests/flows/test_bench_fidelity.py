@@ -109,6 +109,11 @@ def test_finished_reference_rounds_are_not_trained_again(bench_run, catalog):
     rows = B._reference_rounds(settings, "control", no_data, 1, 0)
     assert ckpt.stat().st_mtime_ns == before
     assert round(rows[1]["mcd_cm"], 3) == figures["mcd_control_iter1"]
+    # so are the floors: a rerun reads fidelity/floors.json instead of ray-casting the test split again
+    floors = settings.layout.root / "fidelity" / "floors.json"
+    written = floors.stat().st_mtime_ns
+    assert B.map_floors(settings)["best_headroom"] == figures["best_headroom"]
+    assert floors.stat().st_mtime_ns == written
     # the training-set scores are cached too: a missing checkpoint is not even opened on a rerun
     again = B.training_fit(settings, {"oracle": settings.layout.root / "nope.pt"}, 1, 0)
     assert again == {"mcd_oracle_on_collection": figures["mcd_oracle_on_collection"]}
