@@ -118,3 +118,17 @@ def test_filter_figures_read_the_runs_precision_check(tmp_path):
         '"precision": 0.08333333333333333, "recall": 0.6666666666666666}')
     assert B.filter_figures(layout, 1) == {"filter_precision": 0.083, "filter_recall": 0.667, "filter_base_rate": 0.062,
                                            "filter_n_kept": 192, "filter_n_kept_good": 16}
+
+
+def test_fitting_changes_for_a_sweep():
+    from bat3r_core.catalog import fitting_preset
+    from bat3r_core.config_utils import ConfigError
+
+    base = fitting_preset("synthetic")
+    changed = B.changed_fitting(base, {"weight_angle": 1, "steps": 50})
+    assert changed.weight_angle == 1.0 and isinstance(changed.weight_angle, float) and changed.steps == 50
+    assert changed.weight_edge == base.weight_edge and base.weight_angle == 1.0e-5  # the run's own stay as they were
+    with pytest.raises(ConfigError, match="weight_angel"):
+        B.changed_fitting(base, {"weight_angel": 1.0})
+    with pytest.raises(ConfigError, match="steps"):
+        B.changed_fitting(base, {"steps": "many"})
