@@ -17,7 +17,23 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["main", "build_parser", "add_catalog_argument", "add_bootstrap_arguments", "bootstrap_parameters",
-           "parse_overrides", "ABLATION_SWITCHES"]
+           "parse_overrides", "ABLATION_SWITCHES", "local_server_environment", "LOCAL_SERVER_ENVIRONMENT"]
+
+LOCAL_SERVER_ENVIRONMENT = {
+    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",  # no telemetry (and no ERROR line offline)
+    # Prefect waits 20 s for its temporary server by default; the first start on a fresh machine creates and
+    # migrates the database, which took longer than that on 2 busy cores (a `make bench-fidelity` that died
+    # before its first task)
+    "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "180",
+}
+"""Defaults for a local flow run's temporary Prefect server; a value already in the environment wins."""
+
+
+def local_server_environment() -> None:
+    """Set :data:`LOCAL_SERVER_ENVIRONMENT` where the environment does not already say otherwise. Call before a
+    local flow run starts Prefect's temporary server (``make demo``, ``bat3r bootstrap``, the benchmarks)."""
+    for key, value in LOCAL_SERVER_ENVIRONMENT.items():
+        os.environ.setdefault(key, value)
 
 ABLATION_SWITCHES = {
     "gaussian_cameras": "Normal viewpoint priors (the Student's t loc/scale per view type, no df)",
@@ -307,7 +323,7 @@ def _cmd_bootstrap(args: argparse.Namespace) -> int:
         return 2
     if str(root) not in sys.path:
         sys.path.insert(0, str(root))
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")  # a local run's temporary server: no telemetry
+    local_server_environment()  # a local run's temporary server: no telemetry, time to migrate its database
     from flows.bootstrap import run_bootstrap
 
     return run_bootstrap(bootstrap_parameters(args, args.parser))

@@ -31,6 +31,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+if __name__ == "__main__":  # before Prefect is imported: it reads its settings once, at import
+    from bat3r_core.cli import local_server_environment
+
+    local_server_environment()
+
 from _results import record  # noqa: E402
 
 from bat3r_core import evaluation, evaluation_truth, shards  # noqa: E402

@@ -43,6 +43,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+if __name__ == "__main__":  # before Prefect is imported: it reads its settings once, at import
+    from bat3r_core.cli import local_server_environment
+
+    local_server_environment()
+
 from _results import RESULTS_DIR, record  # noqa: E402
 from bench_demo_control import _oracle_dataset, _test_metrics  # noqa: E402
 

@@ -32,10 +32,10 @@ from pathlib import Path
 if __package__ in (None, ""):  # run as a script or loaded by path (deployments): make the project root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-if __name__ == "__main__":  # a local run's temporary Prefect server: no telemetry (and no ERROR line offline)
-    import os
+if __name__ == "__main__":  # a local run's temporary Prefect server: no telemetry, time to migrate its database
+    from bat3r_core.cli import local_server_environment
 
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    local_server_environment()
 
 import dataclasses
 from typing import Any, Mapping, Sequence

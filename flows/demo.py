@@ -16,10 +16,10 @@ ROOT = Path(__file__).resolve().parents[1]
 if __package__ in (None, ""):
     sys.path.insert(0, str(ROOT))
 
-if __name__ == "__main__":  # the temporary Prefect server of a local run: no telemetry (no ERROR line offline)
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+from bat3r_core.cli import add_catalog_argument, local_server_environment  # noqa: E402
 
-from bat3r_core.cli import add_catalog_argument  # noqa: E402
+if __name__ == "__main__":  # the temporary Prefect server of a local run: no telemetry, time to migrate its database
+    local_server_environment()
 from flows._artifacts import METRIC_COLUMNS  # noqa: E402
 from flows._settings import resolve_run  # noqa: E402
 from flows.bootstrap import bootstrap  # noqa: E402

@@ -107,3 +107,21 @@ def test_bootstrap_without_a_checkout_says_what_is_missing(tmp_path, capsys, mon
                           env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin"}, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert f"{tmp_path / 'site' / 'flows' / 'bootstrap.py'} is missing" in proc.stderr
+
+
+def test_local_runs_give_the_temporary_server_time_to_start_and_keep_a_users_setting():
+    """Prefect reads its settings once, at import: the entry points set the defaults before importing it (a
+    subprocess, so this test's own Prefect import does not count); a value the user exported wins."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import sys; from bat3r_core.cli import local_server_environment; assert 'prefect' not in sys.modules; "
+            "local_server_environment(); from prefect.settings import get_current_settings as g; "
+            "s = g().server; print(s.ephemeral.startup_timeout_seconds, s.analytics_enabled)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_SERVER_")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["180", "False"]
+    env["PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"] = "45"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["45", "False"]
