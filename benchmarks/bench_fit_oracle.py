@@ -15,16 +15,19 @@ the same points. A fit is only worth rendering when it beats the rest pose; the 
 improve for that. Results: ``benchmarks/results/<record-as>.json`` and ``RESULTS.md``.
 
     python benchmarks/bench_fit_oracle.py [--run-name demo] [--iteration 1] [--record-as fit_oracle]
-        [--versions predicted ...] [--fitting KEY=VALUE ...]
+        [--versions predicted ...] [--fitting KEY=VALUE ...] [--error-scales S ...]
 
 ``--fitting weight_angle=1e-3`` refits the same points with a changed fitting setting (the run's stay as they
 were), ``--versions predicted`` fits only the listed versions: a sweep of the fitting objective on one run's
-predictions. About 2 minutes per version on 2 CPU cores for the demo's 192 images.
+predictions. ``--error-scales 0.25 0.5`` adds fits of the points with both maps' errors scaled down (the truth plus
+that fraction of each point's prediction error): how much better Φ₀ has to predict before its fits beat the rest
+pose. About 2 minutes per version on 2 CPU cores for the demo's 192 images.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 from pathlib import Path
@@ -104,6 +107,25 @@ def substitute(inst: PointCloudInstance, truth: Truth, true_p: bool, true_q: boo
                                pixels=keep(inst.pixels), layers=keep(inst.layers))
 
 
+def scale_errors(inst: PointCloudInstance, truth: Truth, scale: float) -> PointCloudInstance:
+    """``inst`` restricted to its truly occupied entries with both maps' errors scaled by ``scale``: each point is
+    ``truth + scale · (prediction − truth)`` (P* moved to the predicted centroid first, as in ``substitute``), so 1
+    is the prediction and 0 the truth. The errors keep their structure (bias, smoothness) and only shrink: how much
+    better must Φ₀ predict for its fits to beat the rest pose?"""
+    if not scale >= 0.0:
+        raise ValueError(f"error scale: expected >= 0, got {scale}")
+    exact = substitute(inst, truth, true_p=True, true_q=True)
+    pred = substitute(inst, truth, true_p=False, true_q=False)
+    return dataclasses.replace(
+        exact, posed_points=exact.posed_points + scale * (pred.posed_points - exact.posed_points),
+        canonical_points=exact.canonical_points + scale * (pred.canonical_points - exact.canonical_points))
+
+
+def error_scale_version(scale: float) -> str:
+    """The figure suffix of the fits at error scale ``scale`` (``errors_x0.25``)."""
+    return f"errors_x{scale:g}"
+
+
 def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
     """Mean and median vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the
     rest pose."""
@@ -154,7 +176,12 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--fitting", action="append", default=[], metavar="KEY=VALUE",
                    help="change a fitting setting (bat3r_core.fitting.FittingConfig field, value parsed as JSON) "
                         "for these fits only, e.g. --fitting weight_angle=1e-3 (repeatable)")
+    p.add_argument("--error-scales", nargs="+", type=float, default=[], metavar="S",
+                   help="also fit the points with both maps' errors scaled by S (0: the truth, 1: as predicted), "
+                        "e.g. --error-scales 0.25 0.5 0.75: how much better Φ₀ must predict")
     args = p.parse_args(argv)
+    if any(not s >= 0.0 for s in args.error_scales):
+        p.error(f"--error-scales: expected values >= 0, got {args.error_scales}")
     if args.iteration < 1:
         raise SystemExit(f"--iteration: expected >= 1 (iteration 0 fits nothing), got {args.iteration}")
     settings, parameters = recorded_run("toy", args.run_name)
@@ -182,9 +209,11 @@ def main(argv: list[str] | None = None) -> dict:
     for key in errors[0]:
         figures[f"median_{key}"] = round(float(np.median([e[key] for e in errors])), 3)
     asset = FittingAsset.prepare(rig, fitting, cache_dir=layout.storage_root / "_cache" / "geodesics")
-    for name in args.versions:
-        true_p, true_q = VERSIONS[name]
-        result = fit_batch(asset, [substitute(i, t, true_p, true_q) for i, t in zip(instances, truths)], fitting)
+    versions = [(name, functools.partial(substitute, true_p=VERSIONS[name][0], true_q=VERSIONS[name][1]))
+                for name in args.versions]
+    versions += [(error_scale_version(s), functools.partial(scale_errors, scale=s)) for s in args.error_scales]
+    for name, make in versions:
+        result = fit_batch(asset, [make(i, t) for i, t in zip(instances, truths)], fitting)
         quality = pose_quality(fit_rows(result), gt, rig)
         figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
         figures[f"pct_better_than_rest_{name}"] = round(quality["pct_better_than_rest"], 1)
@@ -218,7 +247,10 @@ def main(argv: list[str] | None = None) -> dict:
                   + (f" changed by {fitting_changes}" if fitting_changes else "")
                   + " on the predicted maps" + ("" if args.versions == ["predicted"] else
                                                  " and with P, Q or both replaced by the ray-cast truth at the same "
-                                                 "pixels and layers (versions: " + ", ".join(args.versions) + ")")))
+                                                 "pixels and layers (versions: " + ", ".join(args.versions) + ")")
+                  + ("" if not args.error_scales else
+                     "; with both maps' errors scaled by " + ", ".join(f"{s:g}" for s in args.error_scales)
+                     + " (errors_x<scale>: the truth plus that fraction of the prediction's error)")))
     return figures
 
 

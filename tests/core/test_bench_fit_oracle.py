@@ -132,3 +132,25 @@ def test_fitting_changes_for_a_sweep():
         B.changed_fitting(base, {"weight_angel": 1.0})
     with pytest.raises(ConfigError, match="steps"):
         B.changed_fitting(base, {"steps": "many"})
+
+
+def test_error_scales_interpolate_between_truth_and_prediction(scene, toy_rig):
+    inst, gt = scene
+    truth = B.truth_at_points(inst, gt, toy_rig, RES)
+    rng = np.random.default_rng(1)
+    n = len(inst.posed_points)
+    bad = PointCloudInstance(**{**inst.__dict__, "canonical_points": inst.canonical_points + rng.normal(0, 0.1, (n, 3)),
+                                "posed_points": inst.posed_points + rng.normal(0, 0.05, (n, 3)) + [0.0, 0.0, 0.7]})
+    full = B.map_errors(bad, truth)
+    for scale in (0.0, 0.25, 1.0):
+        e = B.map_errors(B.scale_errors(bad, truth, scale), truth)
+        for key in ("q_rms_cm", "p_rms_x_cm", "p_rms_y_cm", "p_rms_z_cm"):
+            assert e[key] == pytest.approx(scale * full[key], rel=1e-6, abs=1e-6), (scale, key)
+    one = B.scale_errors(bad, truth, 1.0)
+    np.testing.assert_allclose(one.canonical_points, bad.canonical_points)
+    np.testing.assert_allclose(one.posed_points, bad.posed_points, atol=1e-12)  # the prediction, centroid kept
+    zero = B.scale_errors(bad, truth, 0.0)
+    np.testing.assert_allclose(zero.canonical_points, B.substitute(bad, truth, True, True).canonical_points)
+    assert B.error_scale_version(0.25) == "errors_x0.25" and B.error_scale_version(1.0) == "errors_x1"
+    with pytest.raises(ValueError, match="error scale"):
+        B.scale_errors(bad, truth, -0.5)
