@@ -3,8 +3,10 @@
 A runner config is a mapping (``TaskRunnerConfig``); named presets live in ``deploy/task_runners.yaml``, and the
 ``bootstrap`` flow's ``task_runner`` parameter is a preset name or the path of a YAML file holding one config.
 
-* ``local``: ``ThreadPoolTaskRunner(max_workers=workers)`` — a laptop; render shards still run Blender in their own
-  processes.
+* ``local``: ``StoppableThreadPoolTaskRunner(max_workers=workers)`` — a laptop; render shards still run Blender in
+  their own processes. A Prefect ``ThreadPoolTaskRunner`` whose running tasks stop within seconds when the flow is
+  stopped (SIGTERM, a cancel from the dashboard, Ctrl-C; ``bat3r_core.stopping``) instead of holding the process
+  up until they finish.
 * ``dask``: ``DaskTaskRunner`` over a ``distributed.LocalCluster`` of ``workers`` workers × ``threads_per_worker``.
 * ``dask-cuda``: ``dask_cuda.LocalCUDACluster`` — one worker process per visible GPU, each pinned to its GPU
   (install the ``gpu`` extra).
@@ -20,11 +22,37 @@ from typing import Any, Literal, Mapping
 
 import yaml
 
-from bat3r_core.config_utils import ConfigError, from_mapping
+from prefect.exceptions import ExternalSignal
+from prefect.task_runners import ThreadPoolTaskRunner
 
-__all__ = ["TaskRunnerConfig", "load_task_runner_config", "make_task_runner", "PRESETS_FILE"]
+from bat3r_core.config_utils import ConfigError, from_mapping
+from bat3r_core.stopping import clear_stop_request, request_stop
+
+__all__ = ["TaskRunnerConfig", "load_task_runner_config", "make_task_runner", "PRESETS_FILE",
+           "StoppableThreadPoolTaskRunner"]
 
 PRESETS_FILE = Path(__file__).resolve().parent.parent / "deploy" / "task_runners.yaml"
+
+
+_STOPPING_SIGNALS = (ExternalSignal, KeyboardInterrupt, SystemExit)
+"""What a flow unwinds with when its process is being stopped: Prefect's ``TerminationSignal`` (SIGTERM, including
+a worker's cancellation), Ctrl-C, ``sys.exit``."""
+
+
+class StoppableThreadPoolTaskRunner(ThreadPoolTaskRunner):
+    """Prefect's thread-pool task runner, plus: when the flow leaves it on a stopping signal (``_STOPPING_SIGNALS``),
+    the tasks still running in its threads are asked to stop (``bat3r_core.stopping.request_stop``) before the
+    runner waits for them, so that a stopped run ends in seconds, not when its longest task would have finished.
+    Entering a runner withdraws an earlier request (a new flow run in the same process)."""
+
+    def __enter__(self):
+        clear_stop_request()
+        return super().__enter__()
+
+    def __exit__(self, exc_type: Any, exc_value: Any, traceback: Any) -> None:
+        if exc_type is not None and issubclass(exc_type, _STOPPING_SIGNALS):
+            request_stop(f"the flow run was interrupted by {exc_type.__name__}")
+        super().__exit__(exc_type, exc_value, traceback)
 
 
 @dataclass(frozen=True)
@@ -94,9 +122,7 @@ def make_task_runner(spec: str | os.PathLike | Mapping[str, Any] | TaskRunnerCon
     """The Prefect task runner for ``spec`` (see ``load_task_runner_config`` and the module docstring)."""
     cfg = load_task_runner_config(spec)
     if cfg.kind == "local":
-        from prefect.task_runners import ThreadPoolTaskRunner
-
-        return ThreadPoolTaskRunner(max_workers=cfg.workers)
+        return StoppableThreadPoolTaskRunner(max_workers=cfg.workers)
     from prefect_dask import DaskTaskRunner
 
     kwargs: dict[str, Any] = {}

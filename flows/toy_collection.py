@@ -25,6 +25,7 @@ from bat3r_core.runs import SampleNeed, require_samples, summarize_drops
 from bat3r_core.specs import GeneratedCollectionSpec
 from bat3r_core.stages import GENERATED_COLLECTION
 from flows._fanout import StageResult, artifact_key, run_stage
+from flows._runners import StoppableThreadPoolTaskRunner
 from flows._settings import RunSettings, resolve_run
 from tasks._cache import for_run
 from tasks.predict import ingest_collection_shard
@@ -76,7 +77,8 @@ def prepare_split(settings: RunSettings, split: str, spec: dict[str, Any],
     return results
 
 
-@flow(name="toy_collection", flow_run_name="{category}-{run_name}-collections")
+@flow(name="toy_collection", flow_run_name="{category}-{run_name}-collections",
+      task_runner=StoppableThreadPoolTaskRunner())
 def toy_collection(category: str = "toy", preset: str = "tiny", run_name: str | None = None,
                    overrides: dict[str, Any] | None = None, catalog: str | None = None) -> dict[str, Any]:
     """Prepare the training collection and the test split of run ``run_name`` (default: the preset name) of

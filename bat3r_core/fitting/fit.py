@@ -37,6 +37,7 @@ import torch
 from bat3r_core.metrics import rms_chamfer, umeyama
 from bat3r_core.rig import Rig
 from bat3r_core.skinning import RigTensors, axis_angle_to_matrix, forward_kinematics
+from bat3r_core.stopping import raise_if_stop_requested
 from bat3r_core.topology import Welding, subdivide_rig, weld_rig
 
 from .camera import CameraEstimate, recover_camera
@@ -494,6 +495,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
         return terms, m_unscaled, rot, scale, trans, scales
 
     for step in range(config.steps):
+        raise_if_stop_requested(f"fitting {len(prepared)} point clouds at step {step} of {config.steps}")
         halving = 0.5 ** (step // config.rotation_lr_halving_steps)
         opt.param_groups[0]["lr"] = config.lr_rotations * halving
         if config.enable_bone_scales:  # the reference halves the bone scales' learning rate with θ's

@@ -41,6 +41,7 @@ from bat3r_core.predictor.data import FeatureFn, ShardDataset
 from bat3r_core.predictor.loss import dual_pointmap_loss, huber_delta
 from bat3r_core.predictor.network import DualPointMapNet
 from bat3r_core.shards import atomic_write
+from bat3r_core.stopping import raise_if_stop_requested, stop_requested
 
 CHECKPOINT_NAME = "checkpoint.pt"
 PREDICTOR_NAME = "predictor.pt"
@@ -214,6 +215,10 @@ class Trainer:
         t0 = time.perf_counter()
         first_step, last_report = self.step, t0
         while self.step < target:
+            if self.world_size == 1 and stop_requested():  # (DDP ranks are processes of their own: no request)
+                self.save_checkpoint()
+                raise_if_stop_requested(f"training in {self.out_dir} at step {self.step} of {cfg.steps} "
+                                        "(checkpoint.pt written: a rerun resumes from this step)")
             delta = (huber_delta(self.step, cfg.steps, cfg.huber_delta_start, cfg.huber_delta_end)
                      if cfg.loss == "robust" else None)
             self.optimizer.zero_grad(set_to_none=True)

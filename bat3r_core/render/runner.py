@@ -31,6 +31,7 @@ from bat3r_core.metrics import mask_iou
 from bat3r_core.render.config import RenderConfig, SceneAssets, render_config
 from bat3r_core.render.jobs import RenderJob, job_to_dict, read_jobs
 from bat3r_core.rig import Rig
+from bat3r_core.stopping import raise_if_stop_requested, stop_requested
 
 __all__ = ["ShardResult", "render_shard", "render_jobs", "render_command", "convert_to_glb"]
 
@@ -142,6 +143,11 @@ def _run_process(rows: list[dict], spec_path: Path, results_path: Path, workdir:
         killed = False
         while proc.poll() is None:
             time.sleep(0.05)
+            if stop_requested():  # a rerun renders the shard again (the work folder is scratch)
+                proc.kill()
+                proc.wait()
+                feeder.join(timeout=5)
+                raise_if_stop_requested(f"rendering {spec_path.parent} ({done} of {len(wanted)} images done)")
             if not ready and ready_file.exists():
                 ready, last_progress = True, time.monotonic()
             results = _read_results(results_path)

@@ -403,6 +403,21 @@ def test_toy_recovery_with_noise_and_outliers(toy, toy_fit):
     assert np.all(result.residual_chamfer[4:] > result.residual_chamfer[:4].max())
 
 
+def test_a_stop_request_ends_fitting_at_its_next_step(toy, toy_fit):
+    from bat3r_core.stopping import StopRequested, clear_stop_request, request_stop
+
+    asset, _, _ = toy_fit
+    theta, _ = sample_toy_natural_poses(1, seed=5)
+    insts, _ = _instances(toy, theta, TOY_BODY_FRAME, 7, 0.0, 0.0)
+    config = preset("synthetic")
+    request_stop("the test")
+    try:
+        with pytest.raises(StopRequested, match=rf"fitting 1 point clouds at step 0 of {config.steps}: stopped"):
+            fit_batch(asset, insts, config)
+    finally:
+        clear_stop_request()
+
+
 def test_second_rig_recovery(geo_cache):
     rig = build_biped_rig()
     assert rig.num_joints == 17 and len(rig.left_right_pairs) == 5

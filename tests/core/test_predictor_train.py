@@ -186,6 +186,38 @@ def test_resume_after_kill_reproduces_uninterrupted_weights(shards16, tmp_path):
     assert all(torch.equal(model.state_dict()[k], reference[k]) for k in reference)
 
 
+def test_a_stop_request_ends_training_with_a_checkpoint_of_its_step_and_resume_is_exact(shards16, tmp_path):
+    """A stopped run (``bat3r_core.stopping``: SIGTERM, a cancel, Ctrl-C) writes ``checkpoint.pt`` at the step it
+    reached — off the ``checkpoint_every`` grid too — and the rerun ends with the uninterrupted run's weights."""
+    from bat3r_core.stopping import StopRequested, clear_stop_request, request_stop, stop_requested
+
+    reference = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "full")
+    reference.train()
+
+    def stop_at_step_3(report):
+        if report["step"] == 3:
+            request_stop("the test")
+
+    stopped = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "stopped",
+                      progress=stop_at_step_3, progress_interval_s=0.0)
+    try:
+        with pytest.raises(StopRequested, match=r"training in .*stopped at step 3 of 6 .*\(the test\)"):
+            stopped.train()
+        assert stopped.step == 3 and not (tmp_path / "stopped" / "predictor.pt").exists()
+        # a StopRequested is no Exception: no per-sample or per-shard handler takes it for a bad input
+        assert not issubclass(StopRequested, Exception)
+        with pytest.raises(StopRequested):  # it stays requested until withdrawn
+            Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "other").train()
+    finally:
+        clear_stop_request()
+    assert not stop_requested()
+    resumed = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "stopped")
+    assert resumed.step == 3  # checkpoint_every is 2: only the stop wrote step 3
+    resumed.train()
+    want, got = _state(reference), _state(resumed)
+    assert all(torch.equal(got[k], want[k]) for k in want)
+
+
 def test_resume_rejects_a_different_config(shards16, tmp_path):
     Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path).train(until_step=2)
     other = TrainConfig(**{**SMALL_TRAIN.__dict__, "lr": 1e-3})

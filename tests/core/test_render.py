@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -329,6 +330,37 @@ def test_killed_worker_is_retried_and_processes_recycled(tmp_path, toy_rig, toy_
     assert result.processes == 2 and len(started) == 2
     assert all(arrays["mask"][i].sum() > 20 for i in range(6))
     assert not (tmp_path / ".work-part-00000").exists()
+
+
+@pytest.mark.blender
+def test_a_stop_request_kills_the_blender_worker_and_writes_no_shard(tmp_path, toy_rig, toy_glb):
+    """A stopped run (``bat3r_core.stopping``) does not wait for the shard's remaining images: the worker is killed
+    within its poll interval, no shard (and no failed row) is written, and the same shard renders on a rerun."""
+    from bat3r_core.render.runner import render_shard
+    from bat3r_core.stopping import StopRequested, clear_stop_request, request_stop
+
+    theta = np.zeros((toy_rig.num_joints, 3))
+    jobs = [_job(toy_rig, f"s{i}", theta, 32, azimuth=-170.0 + 40 * i, seed=i) for i in range(8)]
+    started: list[subprocess.Popen] = []
+
+    def stop_after_the_first_image(report: dict) -> None:
+        if report["done"] >= 1:
+            request_stop("the test")
+
+    cfg = RenderConfig(resolution=32, samples=1)
+    try:
+        with pytest.raises(StopRequested, match=r"rendering .* images done\): stopped \(the test\)") as stop:
+            render_shard(jobs, SceneAssets(str(toy_glb)), tmp_path, 0, cfg, rig=toy_rig,
+                         on_worker_start=started.append, progress=stop_after_the_first_image, progress_interval_s=0)
+    finally:
+        clear_stop_request()
+    done = int(re.search(r"\((\d+) of 8 images done\)", str(stop.value)).group(1))
+    assert 1 <= done < 8
+    assert len(started) == 1 and started[0].poll() is not None  # killed, not left running
+    assert not list(tmp_path.glob("part-*"))
+    render_shard(jobs, SceneAssets(str(toy_glb)), tmp_path, 0, cfg, rig=toy_rig)
+    table, _ = read_shard(tmp_path, 0)
+    assert table.column("status").to_pylist() == ["ok"] * 8
 
 
 @pytest.mark.blender

@@ -198,3 +198,28 @@ def test_generated_collections_resolve_what_they_are_rendered_from(tmp_path, mon
     with pytest.raises(ConfigError, match=r"categories\.beast\.collection\.pose_sampler: only a generated "
                                           r"collection samples poses \(kind is 'folder'\)"):
         load_catalog(path)
+
+
+def test_the_local_runner_asks_running_tasks_to_stop_only_when_its_flow_is_stopped():
+    from prefect.exceptions import TerminationSignal
+
+    from bat3r_core.stopping import clear_stop_request, stop_requested
+    from flows._runners import StoppableThreadPoolTaskRunner, make_task_runner
+
+    runner = make_task_runner("local")
+    assert isinstance(runner, StoppableThreadPoolTaskRunner) and isinstance(runner.duplicate(),
+                                                                            StoppableThreadPoolTaskRunner)
+    try:
+        with pytest.raises(ValueError):  # a failed stage: nothing else to stop
+            with runner:
+                raise ValueError("a stage failed")
+        assert not stop_requested()
+        for signal_exception in (TerminationSignal(signal=15), KeyboardInterrupt()):
+            with pytest.raises(type(signal_exception)):
+                with make_task_runner("local"):
+                    raise signal_exception
+            assert stop_requested()
+            with make_task_runner("local"):  # a new flow run in this process withdraws it
+                assert not stop_requested()
+    finally:
+        clear_stop_request()
