@@ -72,7 +72,7 @@ bench-demo: install
 BENCH_FIDELITY_ARGS ?= --ablations
 bench-fidelity: install
 	PREFECT_SERVER_ANALYTICS_ENABLED=false $(PY) benchmarks/bench_fidelity.py --preset bench --run-name bench $(BENCH_FIDELITY_ARGS)
-	$(PY) benchmarks/bench_fit_oracle.py --run-name bench --record-as fit_oracle_bench
+	$(PY) benchmarks/bench_fit_oracle.py --run-name bench --error-scales 0.25 0.5 --record-as fit_oracle_bench
 
 # A local Prefect server (127.0.0.1), the process work pool, the deployments of deploy/prefect.yaml and a worker.
 server: install

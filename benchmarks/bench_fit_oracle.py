@@ -19,7 +19,8 @@ improve for that. Results: ``benchmarks/results/<record-as>.json`` and ``RESULTS
 
 ``--fitting weight_angle=1e-3`` refits the same points with a changed fitting setting (the run's stay as they
 were), ``--versions predicted`` fits only the listed versions: a sweep of the fitting objective on one run's
-predictions. ``--error-scales 0.25 0.5`` adds fits of the points with both maps' errors scaled down (the truth plus
+predictions. Each version's fits also go through the run's pseudo-label filter (``refit_filter_*``: precision,
+recall and base rate of the kept set against the truth). ``--error-scales 0.25 0.5`` adds fits of the points with both maps' errors scaled down (the truth plus
 that fraction of each point's prediction error): how much better Φ₀ has to predict before its fits beat the rest
 pose. About 2 minutes per version on 2 CPU cores for the demo's 192 images.
 """
@@ -140,6 +141,20 @@ def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
             "pct_better_than_rest": float(100 * np.mean(f < n))}
 
 
+def refit_filter_precision(rows: list[dict], instances: list[PointCloudInstance], gt: dict, rig,
+                           config) -> dict[str, float | None]:
+    """The run's pseudo-label filter (``config``: a ``PseudoLabelFilterConfig``) applied to these fits — their own
+    quality columns, with the canonical points they were fitted to — scored against the truth
+    (``bat3r_core.pseudo_labels.filter_precision``: precision, recall, base rate of the kept set)."""
+    from bat3r_core import pseudo_labels
+
+    ok = [r for r in rows if r["status"] == shards.STATUS_OK]
+    quality = pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances])
+    decided = pseudo_labels.filter_fits(quality, config)
+    return pseudo_labels.filter_precision(evaluation_truth.pseudo_label_errors(ok, gt, rig),
+                                          pseudo_labels.rest_pose_errors(ok, gt, rig), decided)
+
+
 PRECISION_GOAL = 0.8
 """The pseudo-label filter's kept fits must beat the rest pose this often (``benchmarks/bench_fidelity.py``)."""
 
@@ -179,6 +194,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--error-scales", nargs="+", type=float, default=[], metavar="S",
                    help="also fit the points with both maps' errors scaled by S (0: the truth, 1: as predicted), "
                         "e.g. --error-scales 0.25 0.5 0.75: how much better Φ₀ must predict")
+    p.add_argument("--results-dir", type=Path, default=None,
+                   help="write <record-as>.json here instead of benchmarks/results (RESULTS.md is left alone)")
     args = p.parse_args(argv)
     if any(not s >= 0.0 for s in args.error_scales):
         p.error(f"--error-scales: expected values >= 0, got {args.error_scales}")
@@ -213,8 +230,13 @@ def main(argv: list[str] | None = None) -> dict:
                 for name in args.versions]
     versions += [(error_scale_version(s), functools.partial(scale_errors, scale=s)) for s in args.error_scales]
     for name, make in versions:
-        result = fit_batch(asset, [make(i, t) for i, t in zip(instances, truths)], fitting)
-        quality = pose_quality(fit_rows(result), gt, rig)
+        fitted = [make(i, t) for i, t in zip(instances, truths)]
+        rows = fit_rows(fit_batch(asset, fitted, fitting))
+        quality = pose_quality(rows, gt, rig)
+        if not settings.ablations.no_pseudo_label_filter:  # what the run's filter would keep of these fits
+            check = refit_filter_precision(rows, fitted, gt, rig, settings.pseudo_label_filter)
+            figures.update({f"refit_filter_{k}_{name}": round(float(check[k]), 3)
+                            for k in ("precision", "recall", "base_rate") if check[k] is not None})
         figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
         figures[f"pct_better_than_rest_{name}"] = round(quality["pct_better_than_rest"], 1)
         figures[f"median_fit_vertex_err_cm_{name}"] = round(quality["median_vertex_err_cm"], 2)
@@ -222,7 +244,9 @@ def main(argv: list[str] | None = None) -> dict:
         figures["median_rest_pose_vertex_err_cm"] = round(quality["median_rest_pose_vertex_err_cm"], 2)
         print(f"{name:>13}: fits {quality['vertex_err_cm']:.2f} cm from the truth (rest pose "
               f"{quality['rest_pose_vertex_err_cm']:.2f} cm), better than the rest pose for "
-              f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images", flush=True)
+              f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images"
+              + (f"; the run's filter keeps them with precision {figures[f'refit_filter_precision_{name}']:.2f}"
+                 if f"refit_filter_precision_{name}" in figures else ""), flush=True)
     print("median per-image errors of the predictions: " + ", ".join(
         f"{k[len('median_'):]} {v}" for k, v in figures.items()
         if k.startswith("median_") and not k.startswith(("median_fit_", "median_rest_"))))
@@ -239,18 +263,22 @@ def main(argv: list[str] | None = None) -> dict:
                         f"{'met' if figures['filter_precision'] >= PRECISION_GOAL else 'NOT met'})")
     for line in verdicts:
         print(line)
-    record(args.record_as, figures,
-           notes=("; ".join(verdicts) + ". "
-                  f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
-                  f"predictions iteration {args.iteration} fitted ({settings.train.steps} training steps per model, "
-                  f"{r}x{r}); fits with the run's fitting settings"
-                  + (f" changed by {fitting_changes}" if fitting_changes else "")
-                  + " on the predicted maps" + ("" if args.versions == ["predicted"] else
-                                                 " and with P, Q or both replaced by the ray-cast truth at the same "
-                                                 "pixels and layers (versions: " + ", ".join(args.versions) + ")")
-                  + ("" if not args.error_scales else
-                     "; with both maps' errors scaled by " + ", ".join(f"{s:g}" for s in args.error_scales)
-                     + " (errors_x<scale>: the truth plus that fraction of the prediction's error)")))
+    notes = ("; ".join(verdicts) + ". "
+             f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
+             f"predictions iteration {args.iteration} fitted ({settings.train.steps} training steps per model, "
+             f"{r}x{r}); fits with the run's fitting settings"
+             + (f" changed by {fitting_changes}" if fitting_changes else "")
+             + " on the predicted maps" + ("" if args.versions == ["predicted"] else
+                                            " and with P, Q or both replaced by the ray-cast truth at the same "
+                                            "pixels and layers (versions: " + ", ".join(args.versions) + ")")
+             + ("" if not args.error_scales else
+                "; with both maps' errors scaled by " + ", ".join(f"{s:g}" for s in args.error_scales)
+                + " (errors_x<scale>: the truth plus that fraction of the prediction's error)"))
+    if args.results_dir is None:
+        record(args.record_as, figures, notes=notes)
+    else:
+        args.results_dir.mkdir(parents=True, exist_ok=True)
+        (args.results_dir / f"{args.record_as}.json").write_text(json.dumps({**figures, "notes": notes}, indent=2))
     return figures
 
 

@@ -154,3 +154,23 @@ def test_error_scales_interpolate_between_truth_and_prediction(scene, toy_rig):
     assert B.error_scale_version(0.25) == "errors_x0.25" and B.error_scale_version(1.0) == "errors_x1"
     with pytest.raises(ValueError, match="error scale"):
         B.scale_errors(bad, truth, -0.5)
+
+
+def test_the_runs_filter_scored_on_refits(scene, toy_rig):
+    """``refit_filter_precision``: the filter ranks the fits by their own quality columns and is scored against
+    the truth — here a truthful fit (beats the rest pose) and a wild one; keeping the better half by residual
+    Chamfer keeps the truthful one."""
+    from bat3r_core.pseudo_labels import PseudoLabelFilterConfig
+
+    inst, gt = scene
+    theta = gt["excess_rotations"]
+    wild = theta.copy()
+    wild[toy_rig.joint_index("forearm.L")] += [1.5, 0.0, 0.0]
+    base = {"status": "ok", "inlier_ratio": 0.9}
+    rows = [{**base, "sample_id": "s0", "excess_rotations": theta.ravel().tolist(), "residual_chamfer_cm": 1.0},
+            {**base, "sample_id": "s1", "excess_rotations": (3 * wild).ravel().tolist(),
+             "residual_chamfer_cm": 9.0}]
+    config = PseudoLabelFilterConfig(score="residual_chamfer_cm", keep_quantile=0.5, min_kept=1)
+    got = B.refit_filter_precision(rows, [inst, inst], {"s0": gt, "s1": gt}, toy_rig, config)
+    assert (got["n"], got["n_good"], got["n_kept"], got["n_kept_good"]) == (2, 1, 1, 1)
+    assert got["precision"] == 1.0 and got["base_rate"] == 0.5

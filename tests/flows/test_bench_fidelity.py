@@ -121,6 +121,27 @@ def test_finished_reference_rounds_are_not_trained_again(bench_run, catalog):
         B._test_metrics(settings, ckpt, settings.layout.root / "unused", 1, 0, split="train")
 
 
+def test_the_fit_oracle_runs_on_the_bench_run(bench_run, catalog, tmp_path):
+    """``make bench-fidelity``'s second step, ``bench_fit_oracle.py``, on the cut-down run: the predicted fits, the
+    exact-maps fits and the error-scale sweep; scaling the errors to zero fits exactly the exact maps."""
+    import bench_fit_oracle as FO
+
+    figures = FO.main(["--run-name", "bt", "--versions", "predicted", "true_P_and_Q", "--error-scales", "0", "0.5",
+                       "--results-dir", str(tmp_path)])
+    assert figures["images"] == 8
+    for version in ("predicted", "true_P_and_Q", "errors_x0", "errors_x0.5"):
+        assert math.isfinite(figures[f"median_fit_vertex_err_cm_{version}"])
+        assert 0.0 <= figures[f"pct_better_than_rest_{version}"] <= 100.0
+        assert 0.0 <= figures[f"refit_filter_base_rate_{version}"] <= 1.0  # the run's filter on these fits
+    for key in ("fit_vertex_err_cm", "median_fit_vertex_err_cm", "pct_better_than_rest", "refit_filter_base_rate"):
+        assert figures[f"{key}_errors_x0"] == figures[f"{key}_true_P_and_Q"]
+    written = json.loads((tmp_path / "fit_oracle.json").read_text())
+    assert written["median_fit_vertex_err_cm_errors_x0.5"] == figures["median_fit_vertex_err_cm_errors_x0.5"]
+    assert "errors scaled by 0, 0.5" in written["notes"]
+    with pytest.raises(SystemExit):
+        FO.main(["--run-name", "bt", "--error-scales", "-1", "--results-dir", str(tmp_path)])
+
+
 def test_gap_recovered_and_ablation_ordering():
     assert B.gap_recovered(10.0, 6.0, 8.0) == pytest.approx(0.5)
     assert B.gap_recovered(10.0, 6.0, 11.0) == pytest.approx(-0.25)
