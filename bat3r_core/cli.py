@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any
 
 __all__ = ["main", "build_parser", "add_catalog_argument", "add_bootstrap_arguments", "bootstrap_parameters",
-           "parse_overrides", "ABLATION_SWITCHES", "local_server_environment", "LOCAL_SERVER_ENVIRONMENT"]
+           "parse_overrides", "ABLATION_SWITCHES", "local_server_environment", "LOCAL_SERVER_ENVIRONMENT",
+           "exit_on_sigterm", "SIGTERM_EXIT_CODE"]
 
 LOCAL_SERVER_ENVIRONMENT = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",  # no telemetry (and no ERROR line offline)
@@ -30,10 +31,37 @@ LOCAL_SERVER_ENVIRONMENT = {
 
 
 def local_server_environment() -> None:
-    """Set :data:`LOCAL_SERVER_ENVIRONMENT` where the environment does not already say otherwise. Call before a
-    local flow run starts Prefect's temporary server (``make demo``, ``bat3r bootstrap``, the benchmarks)."""
+    """Set :data:`LOCAL_SERVER_ENVIRONMENT` where the environment does not already say otherwise, and make SIGTERM
+    exit through :func:`exit_on_sigterm`. Call before a local flow run starts Prefect's temporary server
+    (``make demo``, ``bat3r bootstrap``, the benchmarks)."""
     for key, value in LOCAL_SERVER_ENVIRONMENT.items():
         os.environ.setdefault(key, value)
+    exit_on_sigterm()
+
+
+SIGTERM_EXIT_CODE = 128 + 15
+"""The exit status of a local run stopped by SIGTERM (what the default action reports to a shell)."""
+
+
+def _raise_system_exit(signum: int, frame: Any) -> None:
+    raise SystemExit(SIGTERM_EXIT_CODE)
+
+
+def exit_on_sigterm() -> bool:
+    """Make SIGTERM raise ``SystemExit(143)`` in the main thread instead of killing the process outright, so that
+    ``atexit`` runs: Prefect stops its temporary server there (under the default action every stopped local run
+    left an orphaned server process behind). During a flow run Prefect's own SIGTERM handler comes first (it marks
+    the run crashed or cancelled) and then re-delivers the signal to this one. Only replaces the default action,
+    only from the main thread; returns whether it installed the handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return False
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return signal.getsignal(signal.SIGTERM) is _raise_system_exit
+    signal.signal(signal.SIGTERM, _raise_system_exit)
+    return True
 
 ABLATION_SWITCHES = {
     "gaussian_cameras": "Normal viewpoint priors (the Student's t loc/scale per view type, no df)",

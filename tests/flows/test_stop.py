@@ -1,6 +1,7 @@
-"""A stopped flow run ends in seconds, not when its longest task would have: SIGTERM (what a batch scheduler and a
-Prefect worker's cancellation send) to a real local flow run whose task is training on the local task runner
-(``flows._runners.StoppableThreadPoolTaskRunner``, ``bat3r_core.stopping``)."""
+"""A stopped flow run ends in seconds, not when its longest task would have, and takes its temporary Prefect server
+with it: SIGTERM (what a batch scheduler and a Prefect worker's cancellation send) to a real local flow run whose
+task is training on the local task runner (``flows._runners.StoppableThreadPoolTaskRunner``,
+``bat3r_core.stopping``, ``bat3r_core.cli.exit_on_sigterm``)."""
 from __future__ import annotations
 
 import json
@@ -55,6 +56,27 @@ def _log_lines(path: Path) -> int:
     return len(path.read_text().splitlines()) if path.is_file() else 0
 
 
+def _children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
 def test_sigterm_stops_a_training_task_within_seconds_and_keeps_its_step(tmp_path):
     out = tmp_path / "train"
     script = tmp_path / "run.py"
@@ -70,6 +92,9 @@ def test_sigterm_stops_a_training_task_within_seconds_and_keeps_its_step(tmp_pat
             assert proc.poll() is None, (tmp_path / "run.log").read_text()[-3000:]
             assert time.monotonic() < deadline, "training never started: " + (tmp_path / "run.log").read_text()[-3000:]
             time.sleep(0.5)
+        server = [c for c in _children(proc.pid)
+                  if "uvicorn" in Path(f"/proc/{c}/cmdline").read_bytes().decode(errors="replace")]
+        assert server, "no temporary Prefect server among the run's child processes"
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
         try:
@@ -82,7 +107,14 @@ def test_sigterm_stops_a_training_task_within_seconds_and_keeps_its_step(tmp_pat
             proc.kill()
             proc.wait()
     log = (tmp_path / "run.log").read_text()
-    assert proc.returncode != 0 and stopped_after < 60
+    assert proc.returncode == 143 and stopped_after < 60  # SystemExit(128 + SIGTERM): atexit ran
+    deadline = time.monotonic() + 20
+    while any(_alive(c) for c in server) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    orphans = [c for c in server if _alive(c)]
+    for c in orphans:
+        os.kill(c, signal.SIGKILL)
+    assert not orphans, "the temporary Prefect server outlived the stopped run"
     assert "checkpoint.pt written" in log, log[-3000:]
     steps_logged = [json.loads(line)["step"] for line in (out / "train_log.jsonl").read_text().splitlines()]
     checkpoint = torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=True)
