@@ -20,9 +20,9 @@ improve for that. Results: ``benchmarks/results/<record-as>.json`` and ``RESULTS
 ``--fitting weight_angle=1e-3`` refits the same points with a changed fitting setting (the run's stay as they
 were), ``--versions predicted`` fits only the listed versions: a sweep of the fitting objective on one run's
 predictions. Each version's fits also go through the run's pseudo-label filter (``refit_filter_*``: precision,
-recall and base rate of the kept set against the truth). ``--error-scales 0.25 0.5`` adds fits of the points with both maps' errors scaled down (the truth plus
-that fraction of each point's prediction error): how much better Φ₀ has to predict before its fits beat the rest
-pose. About 2 minutes per version on 2 CPU cores for the demo's 192 images.
+recall and base rate of the kept set against the truth). ``--error-scales 0.25 0.5`` adds fits of the points with
+both maps' errors scaled down (the truth plus that fraction of each point's prediction error): how much better Φ₀
+has to predict before its fits beat the rest pose. About 2 minutes per version on 2 CPU cores for the demo's 192 images.
 """
 from __future__ import annotations
 
@@ -127,32 +127,38 @@ def error_scale_version(scale: float) -> str:
     return f"errors_x{scale:g}"
 
 
-def pose_quality(rows: list[dict], gt: dict, rig) -> dict[str, float]:
-    """Mean and median vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the
-    rest pose."""
+def pose_errors(rows: list[dict], gt: dict, rig) -> tuple[list[dict], list[dict]]:
+    """The vertex errors of the ok fits of ``rows`` and of the rest pose for the same fits
+    (``evaluation_truth.pseudo_label_errors``, ``pseudo_labels.rest_pose_errors``)."""
+    from bat3r_core import pseudo_labels
+
     ok = [r for r in rows if r["status"] == shards.STATUS_OK]
-    fitted = evaluation_truth.pseudo_label_errors(ok, gt, rig)
-    rest = evaluation_truth.pseudo_label_errors(
-        [dict(r, excess_rotations=[0.0] * (3 * rig.num_joints)) for r in ok], gt, rig)
+    return evaluation_truth.pseudo_label_errors(ok, gt, rig), pseudo_labels.rest_pose_errors(ok, gt, rig)
+
+
+def pose_quality(rows: list[dict], gt: dict, rig, errors: tuple[list[dict], list[dict]] | None = None
+                 ) -> dict[str, float]:
+    """Mean and median vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the
+    rest pose. ``errors``: ``pose_errors(rows, gt, rig)`` when already computed."""
+    fitted, rest = errors if errors is not None else pose_errors(rows, gt, rig)
     f = np.array([e["vertex_err_cm"] for e in fitted])
     n = np.array([e["vertex_err_cm"] for e in rest])
-    return {"fitted": len(ok), "vertex_err_cm": float(f.mean()), "rest_pose_vertex_err_cm": float(n.mean()),
+    return {"fitted": len(fitted), "vertex_err_cm": float(f.mean()), "rest_pose_vertex_err_cm": float(n.mean()),
             "median_vertex_err_cm": float(np.median(f)), "median_rest_pose_vertex_err_cm": float(np.median(n)),
             "pct_better_than_rest": float(100 * np.mean(f < n))}
 
 
-def refit_filter_precision(rows: list[dict], instances: list[PointCloudInstance], gt: dict, rig,
-                           config) -> dict[str, float | None]:
+def refit_filter_precision(rows: list[dict], instances: list[PointCloudInstance], gt: dict, rig, config,
+                           errors: tuple[list[dict], list[dict]] | None = None) -> dict[str, float | None]:
     """The run's pseudo-label filter (``config``: a ``PseudoLabelFilterConfig``) applied to these fits — their own
     quality columns, with the canonical points they were fitted to — scored against the truth
-    (``bat3r_core.pseudo_labels.filter_precision``: precision, recall, base rate of the kept set)."""
+    (``bat3r_core.pseudo_labels.filter_precision``: precision, recall, base rate of the kept set). ``errors``:
+    ``pose_errors(rows, gt, rig)`` when already computed."""
     from bat3r_core import pseudo_labels
 
-    ok = [r for r in rows if r["status"] == shards.STATUS_OK]
+    fitted, rest = errors if errors is not None else pose_errors(rows, gt, rig)
     quality = pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances])
-    decided = pseudo_labels.filter_fits(quality, config)
-    return pseudo_labels.filter_precision(evaluation_truth.pseudo_label_errors(ok, gt, rig),
-                                          pseudo_labels.rest_pose_errors(ok, gt, rig), decided)
+    return pseudo_labels.filter_precision(fitted, rest, pseudo_labels.filter_fits(quality, config))
 
 
 PRECISION_GOAL = 0.8
@@ -232,9 +238,10 @@ def main(argv: list[str] | None = None) -> dict:
     for name, make in versions:
         fitted = [make(i, t) for i, t in zip(instances, truths)]
         rows = fit_rows(fit_batch(asset, fitted, fitting))
-        quality = pose_quality(rows, gt, rig)
+        errors = pose_errors(rows, gt, rig)
+        quality = pose_quality(rows, gt, rig, errors)
         if not settings.ablations.no_pseudo_label_filter:  # what the run's filter would keep of these fits
-            check = refit_filter_precision(rows, fitted, gt, rig, settings.pseudo_label_filter)
+            check = refit_filter_precision(rows, fitted, gt, rig, settings.pseudo_label_filter, errors)
             figures.update({f"refit_filter_{k}_{name}": round(float(check[k]), 3)
                             for k in ("precision", "recall", "base_rate") if check[k] is not None})
         figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
