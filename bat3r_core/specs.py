@@ -22,6 +22,7 @@ from bat3r_core.fitting.augment import AugmentConfig
 from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.features import FeatureConfig
+from bat3r_core.predictor.mirror import CanonicalMirror
 from bat3r_core.render.config import RenderConfig, SceneAssets
 from bat3r_core.viewpoints import CameraPriorConfig
 
@@ -124,12 +125,14 @@ class GeneratedCollectionSpec:
 @dataclass(frozen=True)
 class TrainSpec:
     """``train``: the network, the optimisation, the features it reads (when a batch computes them itself) and,
-    for a warm start, the ``predictor.pt`` whose weights initialise it (part of the cache key)."""
+    for a warm start, the ``predictor.pt`` whose weights initialise it (part of the cache key); ``mirror``, the
+    rig's sagittal plane when ``train.mirror_probability > 0``."""
 
     model: ModelConfig
     train: TrainConfig
     features: FeatureConfig
     init_from: str | None = None
+    mirror: CanonicalMirror | None = None
 
 
 @dataclass(frozen=True)

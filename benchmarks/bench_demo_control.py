@@ -112,7 +112,7 @@ def _rounds(settings, data: Path, out: Path, iterations: int, run_seed: int) -> 
     for it in range(1, iterations + 1):
         o = out / f"round-{it:02d}"
         previous = Trainer(dataset, settings.model, settings.train, o / "train", device="cpu",
-                           init_from=previous).train()
+                           init_from=previous, mirror=settings.mirror).train()
         rows.append(_test_metrics(settings, previous, o, it, seed=run_seed + it))  # the loop evaluates i: seed + i
     return rows
 

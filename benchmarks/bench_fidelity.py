@@ -128,7 +128,7 @@ def _reference_rounds(settings, name: str, data_fn, iterations: int, run_seed: i
             dataset = ShardDataset(data_fn(out), make_feature_fn(settings.features),
                                    cache_shards=settings.train.shuffle_shards)
         checkpoint = Trainer(dataset, settings.model, settings.train, o / "train", device="cpu",
-                             init_from=previous).train()
+                             init_from=previous, mirror=settings.mirror).train()
         row = _test_metrics(settings, checkpoint, o, it, seed=run_seed + it)  # the loop evaluates i: seed + i
         print(f"{name} round {it}: test mCD {row['mcd_cm']:.2f} cm", flush=True)
         return row

@@ -23,6 +23,7 @@ from bat3r_core.fitting.augment import AugmentConfig
 from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.features import FeatureConfig
+from bat3r_core.predictor.mirror import CanonicalMirror, canonical_mirror_for_rig
 from bat3r_core.pseudo_labels import PseudoLabelFilterConfig
 from bat3r_core.render.config import RenderConfig, SceneAssets
 from bat3r_core.runs import RunLayout, read_manifest
@@ -91,6 +92,8 @@ class RunSettings:
     ablations: Ablations
     catalog_file: str = ""
     source_asset: str = ""
+    mirror: CanonicalMirror | None = None
+    """The rig's sagittal plane when ``train.mirror_probability > 0`` (checked symmetric at resolve time)."""
 
     def hint_context(self) -> dict[str, str]:
         """What ``bat3r_core.runs.require_samples`` fills into its hint: the category, its asset file (none for the
@@ -218,6 +221,12 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
                          envmaps=tuple(str(cat.resolve(e)) for e in cat.environment_maps))
     bf = catalog.body_frame(category)
     body_frame = {"origin": bf.origin, "forward": list(bf.forward), "horizontal": list(bf.horizontal)}
+    mirror = None
+    if configs["train"].mirror_probability > 0:
+        from bat3r_core.rig_io import load_rig
+
+        mirror = canonical_mirror_for_rig(load_rig(asset), body_frame,
+                                          source=f"categories.{category} (asset {cat.asset})")
     return RunSettings(
         layout=RunLayout(catalog.storage(), category, run_name), category=category, preset=preset,
         iterations=run.iterations, image_size=run.image_size, layers=catalog.layers, shard_size=shard_size,
@@ -227,7 +236,7 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
         collection=_collection(cat, cat.collection, run.collection_size, run.image_size, assets, body_frame),
         test_split=_collection(cat, cat.test_split, run.test_size, run.image_size, assets, body_frame),
         ablations=ablations, catalog_file=str(Path(catalog.path).resolve()),
-        source_asset=cat.asset if cat.is_generated else str(cat.resolve(cat.asset)), **configs)
+        source_asset=cat.asset if cat.is_generated else str(cat.resolve(cat.asset)), mirror=mirror, **configs)
 
 
 @dataclass(frozen=True)
@@ -278,7 +287,8 @@ def stage_specs(settings: RunSettings, seed: int) -> StageSpecs:
                              num_textures=settings.assets.num_textures, num_envmaps=len(settings.assets.envmaps)),
         render=RenderSpec(render=settings.render, assets=settings.assets),
         features=settings.features,
-        train=TrainSpec(model=settings.model, train=settings.train, features=settings.features),
+        train=TrainSpec(model=settings.model, train=settings.train, features=settings.features,
+                        mirror=settings.mirror),
         infer=InferSpec(features=settings.features, batch_size=settings.infer_batch_size),
         fit=FitSpec(fitting=settings.fitting,
                     camera=CropCamera(fov_deg=prior.fov_deg, resolution=settings.image_size),

@@ -91,7 +91,8 @@ def train_model(shards_dir: str, out_dir: str, config: TrainSpec | Mapping[str, 
     with gpu_slot() as device:
         path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
                                 device=None if device is None else f"cuda:{device}",
-                                init_from=spec.init_from, progress=dashboard_progress(out_dir)).train()
+                                init_from=spec.init_from, mirror=spec.mirror,
+                                progress=dashboard_progress(out_dir)).train()
     log = Path(out_dir) / "train_log.jsonl"
     lines = log.read_text().splitlines() if log.is_file() else []
     last = json.loads(lines[-1]) if lines else {}

@@ -77,6 +77,10 @@ class TrainConfig:
     """Clip the global gradient norm to this value; 0 disables clipping."""
     occupancy_weight: float = 1.0
     """Weight of the occupancy BCE term relative to the regression term."""
+    mirror_probability: float = 0.0
+    """Probability that a training sample is mirrored left-right (``predictor.mirror``: image and maps flipped,
+    posed x negated, canonical points reflected through the rig's sagittal plane); > 0 needs a symmetric rest mesh
+    (checked) and doubles the poses and views a set of renders holds. 0 (the paper): off."""
     seed: int = 0
     """Seeds the model initialisation and the data order (order of epoch e depends on (seed, e) only)."""
     amp_dtype: Literal["bfloat16", "float16", "none"] = "bfloat16"
@@ -107,5 +111,8 @@ class TrainConfig:
                               f"{self.huber_delta_start}, {self.huber_delta_end}")
         if len(self.betas) != 2 or not all(0 <= b < 1 for b in self.betas):
             raise ConfigError(f"TrainConfig.betas: expected two values in [0, 1), got {self.betas}")
+        if not 0.0 <= self.mirror_probability <= 1.0:
+            raise ConfigError("TrainConfig.mirror_probability: expected a value in [0, 1], got "
+                              f"{self.mirror_probability}")
         if self.grad_clip < 0:
             raise ConfigError(f"TrainConfig.grad_clip: expected >= 0, got {self.grad_clip}")

@@ -37,7 +37,8 @@ from torch.nn.parallel import DistributedDataParallel
 from bat3r_core.config_utils import to_mapping
 from bat3r_core.predictor.checkpoints import CHECKPOINT_FORMAT, read_state
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
-from bat3r_core.predictor.data import FeatureFn, ShardDataset
+from bat3r_core.predictor.data import FeatureFn, ShardDataset, TrainingBatch, TrainingTargets
+from bat3r_core.predictor.mirror import CanonicalMirror, mirror_decisions, mirror_samples
 from bat3r_core.predictor.loss import dual_pointmap_loss, huber_delta
 from bat3r_core.predictor.network import DualPointMapNet
 from bat3r_core.shards import atomic_write
@@ -127,6 +128,8 @@ class Trainer:
         init_from: a ``predictor.pt`` (or training ``checkpoint.pt``) whose weights initialise the model (warm
             start; optimiser, schedule and data order start fresh). Its model config must equal
             ``model_config``. Ignored when ``out_dir`` holds a checkpoint to resume (that run started from it).
+        mirror: the rig's sagittal plane (``predictor.mirror.canonical_mirror_for_rig``); required when
+            ``train_config.mirror_probability > 0``, which mirrors that fraction of the samples.
         progress: called on rank 0 every ``progress_interval_s`` seconds of training and after the last step
             with ``{"step", "steps", "fraction", "steps_per_s", "loss", "eta_s"}`` (rate over this call's steps;
             ``loss``: the last step's total); default: an INFO line on this module's logger
@@ -135,7 +138,7 @@ class Trainer:
 
     def __init__(self, dataset: ShardDataset, model_config: ModelConfig, train_config: TrainConfig,
                  out_dir: str | os.PathLike, device: str | torch.device | None = None,
-                 init_from: str | os.PathLike | None = None,
+                 init_from: str | os.PathLike | None = None, mirror: CanonicalMirror | None = None,
                  progress: Callable[[dict[str, Any]], None] | None = _log_progress,
                  progress_interval_s: float = PROGRESS_INTERVAL_S) -> None:
         self.progress, self.progress_interval_s = progress, float(progress_interval_s)
@@ -147,7 +150,10 @@ class Trainer:
         want = (model_config.resolution, model_config.resolution, model_config.layers, model_config.in_channels)
         if got != want:
             raise ValueError(f"dataset: expected (H, W, K, C) = {want} from the model config, got {got}")
-        self.dataset, self.model_config, self.config = dataset, model_config, train_config
+        if train_config.mirror_probability > 0 and mirror is None:
+            raise ValueError(f"mirror: train_config.mirror_probability = {train_config.mirror_probability} needs the "
+                             "rig's sagittal plane (predictor.mirror.canonical_mirror_for_rig), got None")
+        self.dataset, self.model_config, self.config, self.mirror = dataset, model_config, train_config, mirror
         self.out_dir = Path(out_dir)
         self.rank, self.world_size, local_rank = _dist_env()
         if device is None:
@@ -224,7 +230,7 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             sums: dict[str, float] = {}
             for micro in range(cfg.grad_accum):
-                batch = self.dataset.get_batch(self._next_indices())
+                batch = self._mirrored(self.dataset.get_batch(self._next_indices()), micro)
                 sync = self.ddp is None or micro == cfg.grad_accum - 1
                 with (contextlib.nullcontext() if sync else self.ddp.no_sync()):
                     with torch.autocast(self.device.type, dtype=self.amp_dtype, enabled=self.amp_dtype is not None):
@@ -261,6 +267,18 @@ class Trainer:
             self._barrier()
             return self.out_dir / PREDICTOR_NAME
         return self.out_dir / CHECKPOINT_NAME
+
+    def _mirrored(self, batch: TrainingBatch, micro: int) -> TrainingBatch:
+        """``batch`` with the samples ``mirror_decisions`` picks for this step, micro-batch and rank mirrored."""
+        p = self.config.mirror_probability
+        if p <= 0:
+            return batch
+        which = mirror_decisions(self.config.seed, self.step, micro * self.world_size + self.rank,
+                                 len(batch.features), p)
+        t = batch.targets
+        f, m, q, pp, occ = mirror_samples(batch.features, batch.mask, t.canonical_points, t.posed_points, t.occupancy,
+                                          which, self.mirror)
+        return TrainingBatch(f, m, TrainingTargets(q, pp, occ))
 
     def _log(self, record: dict[str, Any]) -> None:
         self.out_dir.mkdir(parents=True, exist_ok=True)
@@ -320,8 +338,8 @@ class Trainer:
 
 def train_predictor(shards_dir: str | os.PathLike, out_dir: str | os.PathLike, model_cfg: ModelConfig,
                     train_cfg: TrainConfig, feature_fn: FeatureFn | None = None,
-                    init_from: str | os.PathLike | None = None) -> Path:
+                    init_from: str | os.PathLike | None = None, mirror: CanonicalMirror | None = None) -> Path:
     """Train (or resume training) on the training shards of ``shards_dir``; returns ``out_dir/predictor.pt``.
-    ``init_from``: warm-start weights (see :class:`Trainer`)."""
+    ``init_from``: warm-start weights; ``mirror``: the rig's sagittal plane (see :class:`Trainer`)."""
     dataset = ShardDataset(shards_dir, feature_fn, cache_shards=train_cfg.shuffle_shards)
-    return Trainer(dataset, model_cfg, train_cfg, out_dir, init_from=init_from).train()
+    return Trainer(dataset, model_cfg, train_cfg, out_dir, init_from=init_from, mirror=mirror).train()

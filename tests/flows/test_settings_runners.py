@@ -43,6 +43,17 @@ def test_overrides_reach_their_stage_configs(catalog, tmp_path):
     assert s.collection["path"].endswith("n16-r48")
 
 
+def test_mirroring_carries_the_rigs_checked_sagittal_plane_into_the_train_spec(catalog):
+    from flows._settings import resolve_run, stage_specs
+
+    off = resolve_run("toy", "tiny", "r1", catalog=catalog)
+    assert off.mirror is None and stage_specs(off, 0).train.mirror is None
+    on = resolve_run("toy", "tiny", "r1", {"train.mirror_probability": 0.5}, catalog=catalog)
+    spec = stage_specs(on, 0).train
+    assert spec.mirror == on.mirror and abs(abs(on.mirror.normal[0]) - 1.0) < 1e-6  # the toy's plane is x = 0
+    assert spec.train.mirror_probability == 0.5
+
+
 @pytest.mark.parametrize("overrides, match", [
     ({"trainer.steps": 1}, r"override 'trainer.steps': expected '<section>.<key>'"),
     ({"train.stepz": 1}, r"override 'stepz': no such key on TrainConfig"),
