@@ -45,13 +45,15 @@ def _atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def record(stage: str, figures: dict, notes: str = "") -> Path:
+def record(stage: str, figures: dict, notes: str = "", results_dir: str | os.PathLike | None = None) -> Path:
     """Write ``results/<stage>.json`` (figures + machine + notes) and refresh ``RESULTS.md``; returns the json path.
 
     Args:
         stage: benchmark name, e.g. ``"pointmaps"`` (letters, digits, ``_`` and ``-``).
         figures: flat mapping name -> finite number.
         notes: free text shown under the stage's table.
+        results_dir: write ``<stage>.json`` there instead and leave ``RESULTS.md`` alone (a CI run, a trial);
+            None or ``RESULTS_DIR``: the project's record.
     """
     if not stage or not all(c.isalnum() or c in "_-" for c in stage):
         raise ValueError(f"stage must be a non-empty name of letters, digits, '_' or '-', got {stage!r}")
@@ -65,9 +67,11 @@ def record(stage: str, figures: dict, notes: str = "") -> Path:
     out["machine"] = machine_description()
     if notes:
         out["notes"] = notes
-    path = RESULTS_DIR / f"{stage}.json"
+    folder = RESULTS_DIR if results_dir is None else Path(results_dir)
+    path = folder / f"{stage}.json"
     _atomic_write_text(path, json.dumps(out, indent=2, sort_keys=False) + "\n")
-    write_results_md()
+    if folder.resolve() == RESULTS_DIR.resolve():
+        write_results_md()
     return path
 
 

@@ -355,11 +355,7 @@ def main(argv: list[str] | None = None) -> dict:
              f"{settings.train.steps} steps on the canonical renders (control) and on the collection's images with "
              f"their true labels (oracle)" + ("; ablations from the same Φ₀: " + ", ".join(ablations)
                                              if ablations else "") + ". " + "; ".join(verdicts) + ".")
-    if args.results_dir == RESULTS_DIR:
-        record(args.record_as, figures, notes=notes)
-    else:
-        args.results_dir.mkdir(parents=True, exist_ok=True)
-        (args.results_dir / f"{args.record_as}.json").write_text(json.dumps({**figures, "notes": notes}, indent=2))
+    record(args.record_as, figures, notes=notes, results_dir=args.results_dir)
     plot(args.results_dir / f"{args.record_as}.png", arms, figures)
     return figures
 

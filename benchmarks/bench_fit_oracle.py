@@ -281,11 +281,7 @@ def main(argv: list[str] | None = None) -> dict:
              + ("" if not args.error_scales else
                 "; with both maps' errors scaled by " + ", ".join(f"{s:g}" for s in args.error_scales)
                 + " (errors_x<scale>: the truth plus that fraction of the prediction's error)"))
-    if args.results_dir is None:
-        record(args.record_as, figures, notes=notes)
-    else:
-        args.results_dir.mkdir(parents=True, exist_ok=True)
-        (args.results_dir / f"{args.record_as}.json").write_text(json.dumps({**figures, "notes": notes}, indent=2))
+    record(args.record_as, figures, notes=notes, results_dir=args.results_dir)
     return figures
 
 
