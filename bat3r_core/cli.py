@@ -254,13 +254,24 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     catalog = load_catalog(args.catalog)
     model_cfg, train_cfg = catalog.model_config(args.preset), catalog.train_config(args.preset)
-    if args.steps is not None:
-        import dataclasses
+    import dataclasses
 
+    if args.steps is not None:
         train_cfg = dataclasses.replace(train_cfg, steps=args.steps)
+    mirror = None
+    if args.mirror is not None:
+        from .predictor.mirror import canonical_mirror_for_rig
+
+        bf = catalog.body_frame(args.mirror)
+        mirror = canonical_mirror_for_rig(
+            catalog.load_rig(args.mirror), {"origin": bf.origin, "forward": bf.forward, "horizontal": bf.horizontal},
+            source=f"--mirror {args.mirror}")
+        if train_cfg.mirror_probability == 0:
+            train_cfg = dataclasses.replace(train_cfg, mirror_probability=0.5)
     ckpt = train_predictor(args.shards, args.out, model_cfg, train_cfg, _feature_fn(catalog, model_cfg.feature),
-                           init_from=args.init_from)
-    print(f"trained {train_cfg.steps} steps ({args.preset} preset): {ckpt}")
+                           init_from=args.init_from, mirror=mirror)
+    print(f"trained {train_cfg.steps} steps ({args.preset} preset"
+          f"{f', {train_cfg.mirror_probability:g} of the samples mirrored' if mirror else ''}): {ckpt}")
     return 0
 
 
@@ -453,6 +464,9 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--steps", type=int, default=None, help="override the preset's number of steps")
     tr.add_argument("--init-from", type=Path, default=None,
                     help="predictor.pt whose weights initialise the model (warm start, e.g. the previous iteration's)")
+    tr.add_argument("--mirror", metavar="CATEGORY", default=None,
+                    help="mirror samples left-right about CATEGORY's sagittal plane (its rig must be symmetric; "
+                         "train.mirror_probability, 0.5 when the preset has none)")
     _catalog_option(tr)
     tr.set_defaults(func=_cmd_train)
 

@@ -60,3 +60,20 @@ def test_train_init_from_starts_from_the_given_predictor(tmp_path):
 
     warm, cold = distance("warm"), distance("cold")
     assert warm < 0.3 * cold, (warm, cold)
+
+
+def test_train_mirror_uses_the_categorys_checked_sagittal_plane(tmp_path, capsys, monkeypatch):
+    import pytest
+
+    monkeypatch.setenv("BAT3R_STORAGE_ROOT", str(tmp_path / "runs"))
+
+    from bat3r_core.predictor.infer import load_predictor
+
+    shards = tmp_path / "shards"
+    write_synthetic_shards(shards, n=8, resolution=32, shard_size=4, seed=0)
+    base = ["train", "--shards", str(shards), "--preset", "tiny", "--steps", "2"]
+    assert main([*base, "--out", str(tmp_path / "m"), "--mirror", "toy"]) == 0
+    assert "0.5 of the samples mirrored" in capsys.readouterr().out
+    assert load_predictor(tmp_path / "m" / "predictor.pt", "cpu")[1].train.mirror_probability == 0.5
+    with pytest.raises(FileNotFoundError, match="category .horse.: rigged asset"):  # no asset: named
+        main([*base, "--out", str(tmp_path / "h"), "--mirror", "horse"])
