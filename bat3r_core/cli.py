@@ -249,23 +249,22 @@ def _feature_fn(catalog, extractor: str):
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    import dataclasses
+
     from .catalog import load_catalog
     from .predictor.train import train_predictor
 
     catalog = load_catalog(args.catalog)
     model_cfg, train_cfg = catalog.model_config(args.preset), catalog.train_config(args.preset)
-    import dataclasses
-
     if args.steps is not None:
         train_cfg = dataclasses.replace(train_cfg, steps=args.steps)
     mirror = None
     if args.mirror is not None:
         from .predictor.mirror import canonical_mirror_for_rig
 
-        bf = catalog.body_frame(args.mirror)
-        mirror = canonical_mirror_for_rig(
-            catalog.load_rig(args.mirror), {"origin": bf.origin, "forward": bf.forward, "horizontal": bf.horizontal},
-            source=f"--mirror {args.mirror}")
+        mirror = canonical_mirror_for_rig(catalog.load_rig(args.mirror),
+                                          dataclasses.asdict(catalog.body_frame(args.mirror)),
+                                          source=f"--mirror {args.mirror}")
         if train_cfg.mirror_probability == 0:
             train_cfg = dataclasses.replace(train_cfg, mirror_probability=0.5)
     ckpt = train_predictor(args.shards, args.out, model_cfg, train_cfg, _feature_fn(catalog, model_cfg.feature),

@@ -122,9 +122,6 @@ def mirror_samples(features: torch.Tensor, mask: torch.Tensor, canonical: torch.
     occupancy[idx] = occ
     p = torch.flip(posed[idx], dims=[2])
     posed[idx] = p * torch.tensor([-1.0, 1.0, 1.0], dtype=p.dtype)
-    q = torch.flip(canonical[idx], dims=[2]).double()
-    o = torch.tensor(mirror.origin, dtype=torch.float64)
-    n = torch.tensor(mirror.normal, dtype=torch.float64)
-    reflected = q - 2.0 * ((q - o) @ n)[..., None] * n
-    canonical[idx] = torch.where(occ[..., None], reflected, torch.zeros_like(reflected)).to(canonical.dtype)
+    reflected = torch.from_numpy(mirror.reflect(torch.flip(canonical[idx], dims=[2]).cpu().numpy()))
+    canonical[idx] = torch.where(occ[..., None], reflected.to(canonical), torch.zeros((), dtype=canonical.dtype))
     return features, mask, canonical, posed, occupancy

@@ -3,6 +3,7 @@ of the mirrored pose seen by the mirrored camera, ray-cast independently; asymme
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -79,6 +80,24 @@ def test_an_asymmetric_rest_mesh_is_refused_with_the_measured_asymmetry(toy):
     lopsided = dataclasses.replace(toy, rest_vertices=v)
     with pytest.raises(ConfigError, match=r"categories\.lopsided.*symmetric.*cm"):
         canonical_mirror_for_rig(lopsided, TOY_BODY_FRAME, source="categories.lopsided")
+
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "assets"
+
+
+@pytest.mark.skipif(not SHARED.is_dir(), reason=f"the shared third-party assets are not in {SHARED}")
+@pytest.mark.parametrize("path, scale", [("fox/Fox.glb", 0.01), ("dog_puppy/scene.gltf", 1.0)], ids=["fox", "dog"])
+def test_the_shared_third_party_rigs_pass_the_symmetry_check_about_their_proposed_body_frame(path, scale):
+    """Users' rigs (the Khronos Fox in centimetres, the seam-split Sketchfab dog) with ``body_frame: auto``."""
+    from bat3r_core.assets import propose_body_frame
+    from bat3r_core.rig_io import load_rig
+
+    rig = load_rig(SHARED / path, scale=scale)
+    p = propose_body_frame(rig)
+    mirror = canonical_mirror_for_rig(rig, {"origin": p.origin, "forward": p.forward, "horizontal": p.horizontal})
+    assert abs(mirror.normal[0]) > 0.999  # their lateral axis is x, as the canonical convention says
+    v = rig.rest_vertices
+    assert np.percentile(symmetry_error(v, rig.faces, mirror), 95) < 1e-3 * np.linalg.norm(np.ptp(v, axis=0))
 
 
 @pytest.mark.parametrize("azimuth", [35.0, 160.0])
