@@ -60,8 +60,8 @@ def symmetry_error(vertices: np.ndarray, faces: np.ndarray, mirror: CanonicalMir
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
-                        o3d.core.Tensor(np.asarray(faces, np.uint32)))
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
     query = o3d.core.Tensor(mirror.reflect(vertices).astype(np.float32))
     return scene.compute_distance(query).numpy().astype(np.float64)
 
