@@ -345,9 +345,15 @@ def test_ddp_two_processes_gloo_keep_identical_weights(shards16, tmp_path):
     assert (ckpt["step"], ckpt["world_size"]) == (3, 2)
 
 
-def test_training_reports_its_progress_at_a_steady_interval(shards16, tmp_path, caplog):
+def test_training_reports_its_progress_at_a_steady_interval(shards16, tmp_path, caplog, monkeypatch):
+    import itertools
+
+    from bat3r_core.predictor import train as training
     from bat3r_core.predictor.train import progress_line
 
+    # a steady clock (0.1 s per reading): the ETA's countdown must not depend on how busy the machine is
+    clock = itertools.count(step=0.1)
+    monkeypatch.setattr(training.time, "perf_counter", lambda: next(clock))
     reports = []
     trainer = Trainer(ShardDataset(shards16), SMALL_MODEL, SMALL_TRAIN, tmp_path / "a", progress=reports.append,
                       progress_interval_s=0.0)
