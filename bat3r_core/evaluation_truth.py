@@ -6,6 +6,7 @@ in :mod:`bat3r_core.evaluation`; the no-ground-truth mask IoUs in :mod:`bat3r_co
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
@@ -22,7 +23,8 @@ if TYPE_CHECKING:
     from bat3r_core.predictor.collection import CropTransform
 
 __all__ = ["sample_surface", "load_ground_truth", "ground_truth_camera", "evaluate_prediction_shard",
-           "map_floor_rows", "PSEUDO_LABEL_FILE", "pseudo_label_errors", "write_pseudo_label_errors"]
+           "map_floor_rows", "MapErrors", "map_errors", "summarise_map_errors",
+           "prediction_map_errors", "PSEUDO_LABEL_FILE", "pseudo_label_errors", "write_pseudo_label_errors"]
 
 
 # ------------------------------------------------------------------------------------ the evaluate stage
@@ -188,6 +190,119 @@ def map_floor_rows(collection_rows: Sequence[Mapping[str, Any]], ground_truth: M
             if name == "perfect_map":
                 figures["n_points"] = int(len(points))  # of the exact map: what the metric's sparsity comes from
         out.append(figures)
+    return out
+
+
+# ------------------------------------------------------------------ where a prediction's error comes from
+
+
+@dataclass(frozen=True)
+class MapErrors:
+    """Per-entry errors of one predicted dual point map against its ray-cast truth (same crop camera, same layers),
+    over the (pixel, layer) entries that both occupy (predicted occupancy > 0.5).
+
+    depth: (M,) metres, error of the posed point's camera z relative to the object depth (what the network
+        predicts: ``P - (0, 0, object_depth)``). lateral: (M,) metres, norm of the posed point's x, y error.
+    canonical: (M,) metres, norm of the canonical point's error.
+    depth_correlation: Pearson correlation of the predicted and true relative depths over the entries (NaN with
+        fewer than 3 entries or no spread): negative when the map's depth order is reversed (the animal seen
+        facing the camera instead of away, the near flank predicted far).
+    occupancy_iou: IoU of the predicted (> 0.5) and true occupancy over all pixels and layers.
+    """
+
+    depth: np.ndarray
+    lateral: np.ndarray
+    canonical: np.ndarray
+    depth_correlation: float
+    occupancy_iou: float
+
+
+def map_errors(pred_posed: np.ndarray, pred_canonical: np.ndarray, pred_occupancy: np.ndarray,
+               true_posed: np.ndarray, true_canonical: np.ndarray, true_occupancy: np.ndarray,
+               object_depth: float) -> MapErrors:
+    """:class:`MapErrors` of one image: predicted maps (H, W, K, 3) and occupancy probabilities (H, W, K) (the
+    inference stage's ``posed_points``, ``canonical_points``, ``occupancy``) against the exact maps of
+    :func:`~bat3r_core.pointmaps.dual_point_maps` (camera-frame ``P``, ``Q``, boolean occupancy, and its
+    ``object_depth``, metres)."""
+    shapes = {np.shape(a)[:3] for a in (pred_posed, pred_canonical, pred_occupancy, true_posed, true_canonical,
+                                        true_occupancy)}
+    if len(shapes) != 1:
+        raise ValueError(f"map_errors: predicted and true maps must share (H, W, K), got shapes {sorted(shapes)}")
+    occ_pred = np.asarray(pred_occupancy, np.float32) > 0.5
+    occ_true = np.asarray(true_occupancy, bool)
+    both = occ_pred & occ_true
+    union = int((occ_pred | occ_true).sum())
+    p_pred = np.asarray(pred_posed, np.float64)[both]
+    p_true = np.asarray(true_posed, np.float64)[both] - np.array([0.0, 0.0, float(object_depth)])
+    e = p_pred - p_true
+    q = np.linalg.norm(np.asarray(pred_canonical, np.float64)[both] - np.asarray(true_canonical, np.float64)[both],
+                       axis=1)
+    corr = float("nan")
+    if len(e) >= 3 and np.std(p_pred[:, 2]) > 0 and np.std(p_true[:, 2]) > 0:
+        corr = float(np.corrcoef(p_pred[:, 2], p_true[:, 2])[0, 1])
+    return MapErrors(depth=np.abs(e[:, 2]), lateral=np.linalg.norm(e[:, :2], axis=1), canonical=q,
+                     depth_correlation=corr, occupancy_iou=1.0 if union == 0 else float(both.sum() / union))
+
+
+def summarise_map_errors(errors: Sequence[MapErrors], tail: float = 0.1) -> dict[str, float]:
+    """Figures of a split's :class:`MapErrors` (entries of all images pooled, cm): ``depth_err_median_cm``,
+    ``depth_err_rms_cm``, ``depth_err_tail_share`` (the share of the summed squared depth error carried by the
+    worst ``tail`` fraction of entries: near ``tail`` for even errors, near 1 when a few gross errors dominate),
+    ``lateral_err_rms_cm``, ``canonical_err_median_cm``, ``canonical_err_rms_cm``, ``depth_reversed_pct`` (images
+    whose depth correlation is negative), ``occupancy_iou`` (mean) and ``n_images``."""
+    if not 0.0 < tail < 1.0:
+        raise ValueError(f"tail: expected a fraction in (0, 1), got {tail}")
+    if not errors:
+        raise ValueError("summarise_map_errors: no image to summarise")
+    depth = np.concatenate([m.depth for m in errors]) * 100.0
+    if len(depth) == 0:
+        raise ValueError("summarise_map_errors: no map entry is occupied in both the prediction and the truth")
+    lateral = np.concatenate([m.lateral for m in errors]) * 100.0
+    canonical = np.concatenate([m.canonical for m in errors]) * 100.0
+    sq = np.sort(depth ** 2)[::-1]
+    worst = max(1, int(round(tail * len(sq))))
+    corr = np.array([m.depth_correlation for m in errors])
+    return {"depth_err_median_cm": float(np.median(depth)), "depth_err_rms_cm": float(np.sqrt(np.mean(sq))),
+            "depth_err_tail_share": float(sq[:worst].sum() / sq.sum()) if sq.sum() > 0 else 0.0,
+            "lateral_err_rms_cm": float(np.sqrt(np.mean(lateral ** 2))),
+            "canonical_err_median_cm": float(np.median(canonical)),
+            "canonical_err_rms_cm": float(np.sqrt(np.mean(canonical ** 2))),
+            "depth_reversed_pct": float(100.0 * np.mean(corr[np.isfinite(corr)] < 0)) if np.isfinite(corr).any()
+            else float("nan"),
+            "occupancy_iou": float(np.mean([m.occupancy_iou for m in errors])), "n_images": float(len(errors))}
+
+
+def prediction_map_errors(predictions_dir: str | os.PathLike, collection_rows: Sequence[Mapping[str, Any]],
+                          ground_truth: Mapping[str, Mapping], rig) -> list[MapErrors]:
+    """:class:`MapErrors` of every ok prediction of an inference folder (``bat3r_core.predictor.infer`` shards)
+    whose image has ground truth: its maps against the exact maps of the true posed mesh through the split's crop
+    camera (``collection_rows``: the split's collection-stage rows, ``crop_*`` columns), at the prediction's
+    resolution and number of layers. Where :func:`evaluate_prediction_shard` says how far off a prediction is, this
+    says how: depth against lateral error, even errors against a few gross ones, reversed depth order."""
+    from bat3r_core.pointmaps import dual_point_maps
+    from bat3r_core.predictor.collection import crop_transform_from_row
+
+    crops = {r["sample_id"]: r for r in collection_rows if r["status"] == shards.STATUS_OK}
+    out = []
+    for index in shards.list_shards(predictions_dir):
+        table, arrays = shards.read_shard(predictions_dir, index)
+        for key in ("posed_points", "canonical_points", "occupancy"):
+            if key not in arrays:
+                raise ValueError(f"{shards.shard_paths(predictions_dir, index).npz}: lacks array {key!r} (expected "
+                                 "an inference shard of bat3r_core.predictor.infer)")
+        for i, row in enumerate(table.to_pylist()):
+            sid = row["sample_id"]
+            if row["status"] != shards.STATUS_OK or sid not in ground_truth or sid not in crops:
+                continue
+            gt = ground_truth[sid]
+            camera = ground_truth_camera(gt, crop_transform_from_row(dict(crops[sid])))
+            if camera.height != arrays["occupancy"].shape[1]:
+                raise ValueError(f"{predictions_dir}: sample {sid!r} is predicted at {arrays['occupancy'].shape[1]} "
+                                 f"px but its crop is {camera.height} px")
+            truth = dual_point_maps(np.asarray(gt["posed_vertices"], np.float64), rig.rest_vertices, rig.faces,
+                                    camera, arrays["occupancy"].shape[-1])
+            out.append(map_errors(arrays["posed_points"][i], arrays["canonical_points"][i], arrays["occupancy"][i],
+                                  truth.P, truth.Q, truth.occupancy, truth.object_depth))
     return out
 
 

@@ -15,7 +15,9 @@ each evaluated on the same test split with the loop's own metrics (``bat3r_core.
 Two figures say what limits the headroom when there is little: the **map floors** (``map_floors``: the test mCD of
 exact point maps and of exact rest-pose maps at the run's crop resolution, the best any oracle and any control can
 score) and the **training fit** (``training_fit``: the oracle's last round and Φ₀ scored on the collection images
-the oracle was trained on; an oracle about as far off there as on the test split under-fits).
+the oracle was trained on; an oracle about as far off there as on the test split under-fits). The **map errors**
+(``map_error_figures``) say how each predictor's test maps are off: depth against lateral error, even errors against
+a few gross ones, images whose depth order is reversed.
 
 Every arm is resumable: the loop and the ablations are flow runs (``runs/toy/<run name>[-<ablation>]``, cached
 stages), the control and oracle rounds keep their checkpoints and metrics under ``runs/toy/<run name>/fidelity/``.
@@ -178,6 +180,53 @@ def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed
     return figures
 
 
+MAP_ERROR_FIGURES = ("depth_err_median_cm", "depth_err_rms_cm", "depth_err_tail_share", "depth_reversed_pct",
+                     "lateral_err_rms_cm")
+"""The figures of ``evaluation_truth.summarise_map_errors`` recorded per predictor (``<figure>_<name>``)."""
+
+
+def map_error_figures(settings, predictions: dict[str, Path]) -> dict[str, float]:
+    """How the test predictions are off, not only how far: each inference folder of ``predictions`` (name → the
+    test_infer folder of Φ₀, the control's and the oracle's last round, the loop's last iteration) against the
+    exact maps of the test split (``evaluation_truth.prediction_map_errors``), per map entry: median and RMS depth
+    error, the share of the squared depth error carried by the worst 10 % of entries, the % of images whose depth
+    order is reversed, and the lateral RMS error. Cached in ``fidelity/map_errors/<name>.json``."""
+    from bat3r_core.evaluation_truth import prediction_map_errors, summarise_map_errors
+
+    gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
+    rows = shards.read_table(settings.layout.run_stage_dir("test")).to_pylist()
+    rig = load_rig(settings.assets.asset)
+    figures = {}
+    for name, folder in predictions.items():
+        summary = _cached_row(settings.layout.root / "fidelity" / "map_errors" / f"{name}.json",
+                              lambda f=folder: summarise_map_errors(prediction_map_errors(f, rows, gt, rig)))
+        figures.update({f"{k}_{name}": round(float(summary[k]), 3) for k in MAP_ERROR_FIGURES})
+    return figures
+
+
+def map_error_line(figures: dict[str, float]) -> str | None:
+    """The verdict sentence of :func:`map_error_figures` (None when they were not measured)."""
+    if "depth_err_rms_cm_phi0" not in figures:
+        return None
+
+    def one(name: str) -> str:
+        f = {k: figures[f"{k}_{name}"] for k in MAP_ERROR_FIGURES}
+        return (f"median {f['depth_err_median_cm']:.1f} cm, RMS {f['depth_err_rms_cm']:.1f} cm, the worst 10 % of "
+                f"entries carry {f['depth_err_tail_share']:.0%} of the squared error, "
+                f"{f['depth_reversed_pct']:.0f} % of images with their depth order reversed")
+
+    line = "per map entry, Φ₀'s relative depth is off by " + one("phi0")
+    for name in ("control", "oracle", "loop"):
+        if f"depth_err_rms_cm_{name}" in figures:
+            line += f"; the {name}'s by " + one(name)
+    oracle_tail = figures.get("depth_err_tail_share_oracle")
+    if oracle_tail is not None and oracle_tail >= 0.5:
+        line += (": gross depth errors on a few entries and images (the animal's depth order misread from a "
+                 f"{figures.get('crop_px', 0):.0f} px image) dominate even the oracle's error, and training on "
+                 "true poses does not remove them")
+    return line
+
+
 def larger_oracles(sizes: list[int], preset: str, run_name: str, overrides: dict, catalog: str | None, phi0: Path,
                    iterations: int, run_seed: int) -> tuple[dict[str, dict[int, dict]], dict[str, float]]:
     """The oracle again with ``--oracle-sizes`` collections of N images (same Φ₀, rounds and test split): does the
@@ -248,6 +297,9 @@ def verdict_lines(figures: dict[str, float]) -> list[str]:
                                   if train < UNDERFIT_RATIO * test else
                                   "it under-fits even its training images, so the network's capacity to learn at "
                                   "this compute, not the poses it is shown, sets the test error"))
+    errors = map_error_line(figures)
+    if errors:
+        lines.append(errors)
     for key in sorted(k for k in figures if k.startswith("mcd_oracle_n") and k.endswith(f"_iter{n}")):
         size = key[len("mcd_oracle_n"):-len(f"_iter{n}")]
         lines.append(f"with {size} collection images the oracle reaches {figures[key]:.2f} cm (headroom "
@@ -347,6 +399,13 @@ def main(argv: list[str] | None = None) -> dict:
     figures.update(training_fit(settings, {"oracle": _round_checkpoint(settings, "oracle", iterations), "phi0": phi0},
                                 iterations, run_seed))
     figures.update(sized_figures)
+    root = settings.layout.root / "fidelity"
+    figures["crop_px"] = settings.model.resolution
+    figures.update(map_error_figures(settings, {
+        "phi0": settings.layout.stage_dir(0, "test_infer"),
+        "control": root / "control" / f"round-{iterations:02d}" / "test_infer",
+        "oracle": root / "oracle" / f"round-{iterations:02d}" / "test_infer",
+        "loop": settings.layout.stage_dir(iterations, "test_infer")}))
     verdicts = verdict_lines(figures)
     for line in verdicts:
         print(line, flush=True)

@@ -336,3 +336,117 @@ def test_map_floors_fall_with_resolution_and_only_the_rest_pose_pays_for_the_pos
         assert floors[64][s]["n_points"] > 3 * floors[32][s]["n_points"]
         assert floors[64][s]["perfect_map_cd_cm"] < 0.75 * floors[32][s]["perfect_map_cd_cm"]
         assert floors[32][s]["perfect_map_cd_cm"] > 2.0
+
+
+# ------------------------------------------------------------------ how a prediction is off, not only how far
+
+
+def _crafted_maps(rng, h=4, w=5, k=2, depth=5.0):
+    """Exact camera-frame maps of a crafted scene: every pixel occupied in both layers, layer 1 behind layer 0."""
+    p = rng.normal(size=(h, w, k, 3)) * 0.3
+    p[..., 2] = depth + rng.uniform(-0.4, 0.4, size=(h, w, k))
+    p[..., 1, 2] += 0.6
+    q = rng.normal(size=(h, w, k, 3))
+    return p, q, np.ones((h, w, k), bool)
+
+
+def test_map_errors_against_hand_computation():
+    rng = np.random.default_rng(4)
+    p, q, occ = _crafted_maps(rng)
+    rel = p - np.array([0.0, 0.0, 5.0])            # what the network predicts: relative to the object depth
+    exact = T.map_errors(rel, q, occ.astype(np.float32), p, q, occ, object_depth=5.0)
+    assert np.abs(exact.depth).max() < 1e-12 and np.abs(exact.lateral).max() < 1e-12
+    assert exact.depth_correlation == pytest.approx(1.0) and exact.occupancy_iou == 1.0
+
+    off = rel.copy()
+    off[..., 0] += 0.03                             # 3 cm to the side, 4 cm deeper, 12 cm off in Q everywhere
+    off[..., 2] += 0.04
+    prob = np.full(occ.shape, 0.9, np.float32)
+    prob[0, 0, 0] = 0.2                             # one true entry missed
+    truth_occ = occ.copy()
+    truth_occ[3, 4, 1] = False                      # one predicted entry that the truth does not have
+    m = T.map_errors(off, q + np.array([0.0, 0.12, 0.0]), prob, p, q, truth_occ, object_depth=5.0)
+    n = occ.size - 2
+    assert len(m.depth) == n
+    np.testing.assert_allclose(m.depth, 0.04, atol=1e-9)
+    np.testing.assert_allclose(m.lateral, 0.03, atol=1e-9)
+    np.testing.assert_allclose(m.canonical, 0.12, atol=1e-9)
+    assert m.occupancy_iou == pytest.approx(n / occ.size)
+    assert m.depth_correlation == pytest.approx(1.0)   # a constant offset keeps the depth order
+
+    # the same relative depths mirrored about their mean: the near flank predicted far
+    mean_z = rel[..., 2].mean()
+    flipped = rel.copy()
+    flipped[..., 2] = 2 * mean_z - rel[..., 2]
+    r = T.map_errors(flipped, q, occ.astype(np.float32), p, q, occ, object_depth=5.0)
+    assert r.depth_correlation == pytest.approx(-1.0)
+    np.testing.assert_allclose(r.depth, 2 * np.abs(rel[..., 2] - mean_z).ravel(), atol=1e-9)
+
+    with pytest.raises(ValueError, match="share"):
+        T.map_errors(rel[:, :4], q, occ, p, q, occ, object_depth=5.0)
+
+
+def test_summarise_map_errors_tail_share_and_reversed_images_by_hand():
+    def errors(depth_cm, corr):
+        d = np.asarray(depth_cm, np.float64) / 100.0
+        return T.MapErrors(depth=d, lateral=np.zeros_like(d), canonical=d * 2, depth_correlation=corr,
+                           occupancy_iou=0.5)
+
+    even = [errors([1.0] * 10, 0.9), errors([1.0] * 10, 0.8)]
+    s = T.summarise_map_errors(even)
+    assert s["depth_err_tail_share"] == pytest.approx(0.1)       # 2 of 20 entries carry 2 of 20 units
+    assert s["depth_err_median_cm"] == pytest.approx(1.0) and s["depth_err_rms_cm"] == pytest.approx(1.0)
+    assert s["depth_reversed_pct"] == 0.0 and s["n_images"] == 2
+
+    gross = [errors([1.0] * 9 + [10.0], 0.7), errors([1.0] * 10, -0.4), errors([], math.nan)]
+    s = T.summarise_map_errors(gross)
+    # 20 entries: the worst 2 are 10 cm and 1 cm → (100 + 1) / (19 + 100)
+    assert s["depth_err_tail_share"] == pytest.approx(101 / 119)
+    assert s["depth_err_rms_cm"] == pytest.approx(math.sqrt(119 / 20))
+    assert s["canonical_err_median_cm"] == pytest.approx(2.0)
+    assert s["depth_reversed_pct"] == pytest.approx(50.0)           # of the 2 images with a correlation
+    assert s["occupancy_iou"] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="tail"):
+        T.summarise_map_errors(even, tail=1.5)
+    with pytest.raises(ValueError, match="no image"):
+        T.summarise_map_errors([])
+
+
+def test_prediction_map_errors_of_exact_and_depth_reversed_predictions(toy_rig, tmp_path):
+    """Inference shards holding the exact maps score 0 everywhere; the same maps with the depth order mirrored
+    are all reversed, with the depth error the mirroring puts there; unpredicted or unknown samples are skipped."""
+    from bat3r_core import shards
+    from bat3r_core.pointmaps import dual_point_maps
+    from bat3r_core.poses import sample_toy_natural_poses
+    from bat3r_core.predictor.collection import crop_transform_from_row
+
+    theta, _ = sample_toy_natural_poses(3, seed=5)
+    gts, rows, exact, flipped = {}, [], [], []
+    for i in range(3):
+        gt, row = _floor_sample(toy_rig, theta[i], 32, i)
+        gts[row["sample_id"]] = gt
+        rows.append(row)
+        cam = T.ground_truth_camera(gt, crop_transform_from_row(row))
+        m = dual_point_maps(gt["posed_vertices"], toy_rig.rest_vertices, toy_rig.faces, cam, num_layers=2)
+        rel = np.where(m.occupancy[..., None], m.P - np.array([0.0, 0.0, m.object_depth], np.float32), 0.0)
+        exact.append((rel, np.where(m.occupancy[..., None], m.Q, 0.0), m.occupancy.astype(np.float32)))
+        f = rel.copy()
+        f[..., 2] = np.where(m.occupancy, -rel[..., 2], 0.0)
+        flipped.append((f, exact[-1][1], exact[-1][2]))
+    table = [{"sample_id": r["sample_id"], "status": "ok", "reason": ""} for r in rows]
+    table.append({"sample_id": "nobody", "status": "ok", "reason": ""})           # no ground truth: skipped
+    for name, maps in (("exact", exact), ("flipped", flipped)):
+        maps = maps + [tuple(np.zeros_like(a) for a in maps[0])]
+        shards.write_shard(tmp_path / name, 0, table, {
+            "posed_points": np.stack([m[0] for m in maps]).astype(np.float16),
+            "canonical_points": np.stack([m[1] for m in maps]).astype(np.float16),
+            "occupancy": np.stack([m[2] for m in maps]).astype(np.float16)})
+    s = T.summarise_map_errors(T.prediction_map_errors(tmp_path / "exact", rows, gts, toy_rig))
+    assert s["n_images"] == 3 and s["occupancy_iou"] == 1.0 and s["depth_reversed_pct"] == 0.0
+    assert s["depth_err_rms_cm"] < 0.2 and s["lateral_err_rms_cm"] < 0.2 and s["canonical_err_rms_cm"] < 0.2  # f16
+    errs = T.prediction_map_errors(tmp_path / "flipped", rows, gts, toy_rig)
+    assert T.summarise_map_errors(errs)["depth_reversed_pct"] == 100.0
+    for (rel, _, occ), e in zip(exact, errs):
+        np.testing.assert_allclose(e.depth, 2 * np.abs(rel[occ > 0.5][:, 2]), atol=2e-3)
+    with pytest.raises(ValueError, match="predicted at 32 px"):
+        T.prediction_map_errors(tmp_path / "exact", [{**rows[0], "resolution": 64}], gts, toy_rig)
