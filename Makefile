@@ -67,9 +67,10 @@ bench: install
 bench-demo: install
 	@for b in $(RUN_ANALYSES); do echo "== $$b"; $(PY) $$b || exit 1; done
 
-# The loop against its same-compute control and oracle, with the paper's ablations, at the catalog's `bench` preset
-# (~2 h on 2 cores; resumable: rerun after an interruption), then the fit diagnosis of its Φ₀ predictions.
-BENCH_FIDELITY_ARGS ?= --ablations
+# The loop against its same-compute control and oracle at the catalog's `bench` preset (~55 min on 2 cores;
+# resumable: rerun after an interruption), then the fit diagnosis of its Φ₀ predictions. The paper's three ablations
+# add ~20 min each: `make bench-fidelity BENCH_FIDELITY_ARGS=--ablations` (~2 h 20 min on 2 cores).
+BENCH_FIDELITY_ARGS ?=
 bench-fidelity: install
 	PREFECT_SERVER_ANALYTICS_ENABLED=false $(PY) benchmarks/bench_fidelity.py --preset bench --run-name bench $(BENCH_FIDELITY_ARGS)
 	$(PY) benchmarks/bench_fit_oracle.py --run-name bench --error-scales 0.25 0.5 --record-as fit_oracle_bench
