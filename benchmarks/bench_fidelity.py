@@ -221,9 +221,9 @@ def map_error_line(figures: dict[str, float]) -> str | None:
             line += f"; the {name}'s by " + one(name)
     oracle_tail = figures.get("depth_err_tail_share_oracle")
     if oracle_tail is not None and oracle_tail >= 0.5:
-        line += (": gross depth errors on a few entries and images (the animal's depth order misread from a "
-                 f"{figures.get('crop_px', 0):.0f} px image) dominate even the oracle's error, and training on "
-                 "true poses does not remove them")
+        image = f"a {figures['crop_px']:.0f} px image" if "crop_px" in figures else "the image"
+        line += (": gross depth errors on a few entries and images (the animal's depth order misread from "
+                 f"{image}) dominate even the oracle's error, and training on true poses does not remove them")
     return line
 
 
