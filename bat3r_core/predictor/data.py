@@ -205,3 +205,43 @@ class ShardDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> TrainingBatch:
         b = self.get_batch([index])
         return TrainingBatch(b.features[0], b.mask[0], TrainingTargets(*(t[0] for t in b.targets)))
+
+
+class DeviceDataset:
+    """Every sample of a :class:`ShardDataset` decoded once, with its features, and held as tensors on ``device``:
+    ``get_batch`` is then an index on the device instead of a shard read, a gather and a feature pass in Python per
+    step — what keeps a GPU busy on small crops (on an H200 at 64×64 a step that read its batch from shards took
+    ~60 ms, the network ~5 ms). Same samples, same order (``epoch_order`` is the source's), same batches as the
+    source's ``get_batch``; a drop-in ``dataset`` for :class:`~bat3r_core.predictor.train.Trainer`. Needs ``len × H × W × (4 C + 25 K + 1)`` bytes
+    (2.1 GB for 4,608 samples at 64×64, K = 4, rgb features).
+
+    Args:
+        source: the shard dataset to hold.
+        device: where the tensors live (``cuda``, ``cuda:N`` or ``cpu``).
+        chunk: samples decoded per ``source.get_batch`` call while loading.
+    """
+
+    def __init__(self, source: ShardDataset, device: str | torch.device, chunk: int = 256) -> None:
+        self.source, self.device = source, torch.device(device)
+        self.height, self.width, self.layers, self.channels = source.height, source.width, source.layers, \
+            source.channels
+        parts: list[TrainingBatch] = []
+        for start in range(0, len(source), int(chunk)):
+            b = source.get_batch(np.arange(start, min(start + int(chunk), len(source))))
+            parts.append(TrainingBatch(b.features.to(self.device), b.mask.to(self.device),
+                                       TrainingTargets(*(t.to(self.device) for t in b.targets))))
+        self._features = torch.cat([p.features for p in parts])
+        self._mask = torch.cat([p.mask for p in parts])
+        self._targets = TrainingTargets(*(torch.cat([p.targets[i] for p in parts]) for i in range(3)))
+
+    def __len__(self) -> int:
+        return len(self.source)
+
+    def epoch_order(self, seed: int, epoch: int, shuffle_shards: int = 4) -> np.ndarray:
+        """The source's order (:meth:`ShardDataset.epoch_order`)."""
+        return self.source.epoch_order(seed, epoch, shuffle_shards)
+
+    def get_batch(self, indices) -> TrainingBatch:
+        """Samples ``indices`` (global) as a batch on ``device``."""
+        idx = torch.as_tensor(np.asarray(indices, dtype=np.int64), device=self.device)
+        return TrainingBatch(self._features[idx], self._mask[idx], TrainingTargets(*(t[idx] for t in self._targets)))
