@@ -41,7 +41,7 @@ from _results import record  # noqa: E402
 from bat3r_core import evaluation, evaluation_truth, shards  # noqa: E402
 from bat3r_core.datasets import raw_image_shard  # noqa: E402
 from bat3r_core.predictor.collection import crop_transform_from_row  # noqa: E402
-from bat3r_core.predictor.data import ShardDataset  # noqa: E402
+from bat3r_core.predictor.data import ShardDataset, hold_on_device  # noqa: E402
 from bat3r_core.predictor.features import make_feature_fn  # noqa: E402
 from bat3r_core.predictor.infer import predict_collection  # noqa: E402
 from bat3r_core.predictor.train import Trainer  # noqa: E402
@@ -111,8 +111,8 @@ def _rounds(settings, data: Path, out: Path, iterations: int, run_seed: int) -> 
     rows = []
     for it in range(1, iterations + 1):
         o = out / f"round-{it:02d}"
-        previous = Trainer(dataset, settings.model, settings.train, o / "train", device="cpu",
-                           init_from=previous, mirror=settings.mirror).train()
+        previous = Trainer(hold_on_device(dataset, None, settings.train.mirror_probability), settings.model,
+                           settings.train, o / "train", init_from=previous, mirror=settings.mirror).train()
         rows.append(_test_metrics(settings, previous, o, it, seed=run_seed + it))  # the loop evaluates i: seed + i
     return rows
 

@@ -55,7 +55,7 @@ from bench_demo_control import _oracle_dataset, _test_metrics  # noqa: E402
 
 from bat3r_core import evaluation_truth, shards  # noqa: E402
 from bat3r_core.cli import add_catalog_argument, parse_overrides  # noqa: E402
-from bat3r_core.predictor.data import ShardDataset  # noqa: E402
+from bat3r_core.predictor.data import ShardDataset, hold_on_device  # noqa: E402
 from bat3r_core.predictor.features import make_feature_fn  # noqa: E402
 from bat3r_core.predictor.train import Trainer  # noqa: E402
 from bat3r_core.rig_io import load_rig  # noqa: E402
@@ -129,8 +129,8 @@ def _reference_rounds(settings, name: str, data_fn, iterations: int, run_seed: i
         if dataset is None:
             dataset = ShardDataset(data_fn(out), make_feature_fn(settings.features),
                                    cache_shards=settings.train.shuffle_shards)
-        checkpoint = Trainer(dataset, settings.model, settings.train, o / "train", device="cpu",
-                             init_from=previous, mirror=settings.mirror).train()
+        checkpoint = Trainer(hold_on_device(dataset, None, settings.train.mirror_probability), settings.model,
+                             settings.train, o / "train", init_from=previous, mirror=settings.mirror).train()
         row = _test_metrics(settings, checkpoint, o, it, seed=run_seed + it)  # the loop evaluates i: seed + i
         print(f"{name} round {it}: test mCD {row['mcd_cm']:.2f} cm", flush=True)
         return row

@@ -7,7 +7,7 @@ from typing import Any, Callable, Mapping
 
 from bat3r_core import shards
 from bat3r_core.predictor import train as training
-from bat3r_core.predictor.data import ShardDataset
+from bat3r_core.predictor.data import ShardDataset, hold_on_device
 from bat3r_core.predictor.features import make_feature_fn
 from bat3r_core.specs import TrainSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
@@ -89,8 +89,9 @@ def train_model(shards_dir: str, out_dir: str, config: TrainSpec | Mapping[str, 
     source = {"features_dir": features_dir} if features_dir else {"feature_fn": make_feature_fn(spec.features)}
     dataset = ShardDataset(shards_dir, cache_shards=train_cfg.shuffle_shards, **source)
     with gpu_slot() as device:
-        path = training.Trainer(dataset, model_cfg, train_cfg, out_dir,
-                                device=None if device is None else f"cuda:{device}",
+        device = None if device is None else f"cuda:{device}"
+        held = hold_on_device(dataset, device, train_cfg.mirror_probability)  # the GPU's copy, when one fits
+        path = training.Trainer(held, model_cfg, train_cfg, out_dir, device=device,
                                 init_from=spec.init_from, mirror=spec.mirror,
                                 progress=dashboard_progress(out_dir)).train()
     log = Path(out_dir) / "train_log.jsonl"

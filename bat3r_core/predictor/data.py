@@ -245,3 +245,26 @@ class DeviceDataset:
         """Samples ``indices`` (global) as a batch on ``device``."""
         idx = torch.as_tensor(np.asarray(indices, dtype=np.int64), device=self.device)
         return TrainingBatch(self._features[idx], self._mask[idx], TrainingTargets(*(t[idx] for t in self._targets)))
+
+    @staticmethod
+    def nbytes(source: ShardDataset) -> int:
+        """Bytes the tensors of ``DeviceDataset(source, ...)`` take: ``len × H × W × (4 C + 25 K + 1)``."""
+        return len(source) * source.height * source.width * (4 * source.channels + 25 * source.layers + 1)
+
+
+def hold_on_device(dataset: ShardDataset, device: str | torch.device | None, mirror_probability: float = 0.0,
+                   max_fraction: float = 0.5) -> ShardDataset | DeviceDataset:
+    """``dataset`` held on ``device`` (:class:`DeviceDataset`) when that is a CUDA device (``None``: the one the
+    trainer would pick), no sample is mirrored (``predictor.mirror`` flips batches on the CPU) and its tensors take
+    at most ``max_fraction`` of the device's free memory; else ``dataset`` itself (read from shards per step)."""
+    if device is None:
+        if not torch.cuda.is_available():
+            return dataset
+        device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
+    device = torch.device(device)
+    if device.type != "cuda" or mirror_probability > 0:
+        return dataset
+    free, _ = torch.cuda.mem_get_info(device)
+    if DeviceDataset.nbytes(dataset) > max_fraction * free:
+        return dataset
+    return DeviceDataset(dataset, device)

@@ -37,7 +37,7 @@ from torch.nn.parallel import DistributedDataParallel
 from bat3r_core.config_utils import to_mapping
 from bat3r_core.predictor.checkpoints import CHECKPOINT_FORMAT, read_state
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
-from bat3r_core.predictor.data import FeatureFn, ShardDataset, TrainingBatch, TrainingTargets
+from bat3r_core.predictor.data import FeatureFn, ShardDataset, TrainingBatch, TrainingTargets, hold_on_device
 from bat3r_core.predictor.mirror import CanonicalMirror, mirror_decisions, mirror_samples
 from bat3r_core.predictor.loss import dual_pointmap_loss, huber_delta
 from bat3r_core.predictor.network import DualPointMapNet
@@ -341,5 +341,6 @@ def train_predictor(shards_dir: str | os.PathLike, out_dir: str | os.PathLike, m
                     init_from: str | os.PathLike | None = None, mirror: CanonicalMirror | None = None) -> Path:
     """Train (or resume training) on the training shards of ``shards_dir``; returns ``out_dir/predictor.pt``.
     ``init_from``: warm-start weights; ``mirror``: the rig's sagittal plane (see :class:`Trainer`)."""
-    dataset = ShardDataset(shards_dir, feature_fn, cache_shards=train_cfg.shuffle_shards)
+    dataset = hold_on_device(ShardDataset(shards_dir, feature_fn, cache_shards=train_cfg.shuffle_shards), None,
+                             train_cfg.mirror_probability)
     return Trainer(dataset, model_cfg, train_cfg, out_dir, init_from=init_from, mirror=mirror).train()

@@ -132,3 +132,25 @@ def test_save_half_halves_the_file_and_loads_as_a_predictor(tmp_path):
     for (k, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
         assert y.dtype == x.dtype, k
         assert torch.allclose(x, y, rtol=1e-3, atol=1e-4), k
+
+
+def test_hold_on_device_keeps_shards_on_cpu_and_when_mirroring(tmp_path, monkeypatch):
+    from bat3r_core.predictor import data as D
+
+    write_synthetic_shards(tmp_path / "s", 4, 16, shard_size=4, seed=4)
+    source = ShardDataset(tmp_path / "s", rgb_features)
+    assert D.DeviceDataset.nbytes(source) == 4 * 16 * 16 * (4 * 3 + 25 * 4 + 1)
+    held = D.DeviceDataset(source, "cpu")
+    stored = sum(t.numel() * t.element_size() for t in (held._features, held._mask, *held._targets))
+    assert stored == D.DeviceDataset.nbytes(source)
+    assert D.hold_on_device(source, "cpu") is source
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert D.hold_on_device(source, None) is source
+    # a CUDA device (its free memory reported as plenty) holds it unless samples are mirrored or it does not fit
+    made = []
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device: (10 * D.DeviceDataset.nbytes(source), 0))
+    monkeypatch.setattr(D, "DeviceDataset", type("Fake", (), {"__init__": lambda self, s, d: made.append(d),
+                                                             "nbytes": staticmethod(held.nbytes)}))
+    assert D.hold_on_device(source, "cuda:1", mirror_probability=0.5) is source and not made
+    assert not isinstance(D.hold_on_device(source, "cuda:1"), ShardDataset) and made == [torch.device("cuda:1")]
+    assert D.hold_on_device(source, "cuda:0", max_fraction=0.05) is source and len(made) == 1
