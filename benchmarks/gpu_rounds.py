@@ -320,6 +320,86 @@ def _evaluate(args: argparse.Namespace) -> None:
     Path(args.json).write_text(json.dumps(rows, indent=1))
 
 
+# ------------------------------------------------------------------------------------------------------- record
+ARMS = {"phi0": ("phi0", 0), "control": ("control", 1), "oracle": ("oracle", 1), "loop1": ("loop", 1)}
+"""Predictor file name → (arm, iteration) in ``bench_fidelity``'s figure names."""
+
+
+def _record(args: argparse.Namespace) -> dict:
+    """``benchmarks/results/<record-as>.json`` and RESULTS.md from the evaluations (``evaluate --json``), the device
+    timings (``timings.json``) and the loop run's fits (their pose errors against the hidden truth, the filter's
+    precision), with ``bench_fidelity``'s verdict lines."""
+    from _results import record
+    from bench_fidelity import map_error_figures, verdict_lines
+    from bench_fit_oracle import filter_figures, pose_quality
+
+    from bat3r_core import evaluation_truth
+    from bat3r_core.rig_io import load_rig
+    from flows._settings import recorded_run
+
+    settings, parameters = recorded_run("toy", args.run_name)
+    figures: dict[str, float] = {"iterations": 1, "crop_px": settings.model.resolution}
+    tests: dict[str, dict] = {}
+    for path in args.evaluations:
+        data = json.loads(Path(path).read_text())
+        figures.update({k: float(v) for k, v in data.pop("floors", {}).items()})
+        tests.update(data)
+    for name, row in tests.items():
+        arm, it = ARMS[name]
+        figures[f"mcd_{arm}_iter{it}"] = round(row["mcd_cm"], 3)
+        figures[f"pct_over_5cm_{arm}_iter{it}"] = round(row["pct_mcd_over_5cm"], 1)
+        figures[f"rot_err_deg_{arm}_iter{it}"] = round(row["rot_err_deg"], 1)
+    for arm in ("loop", "control", "oracle"):
+        figures[f"mcd_{arm}_iter0"] = figures["mcd_phi0_iter0"]
+        figures[f"rot_err_deg_{arm}_iter0"] = figures["rot_err_deg_phi0_iter0"]
+    control, oracle, loop = (figures[f"mcd_{a}_iter1"] for a in ("control", "oracle", "loop"))
+    figures["headroom"] = round(oracle / control, 3)
+    figures["loop_gap_recovered"] = round((control - loop) / (control - oracle), 3)
+    c, o, lp = (figures[f"rot_err_deg_{a}_iter1"] for a in ("control", "oracle", "loop"))
+    figures["loop_rot_gap_recovered"] = round((c - lp) / (c - o), 3)
+    devices = set()
+    for path in args.timings:
+        t = json.loads(Path(path).read_text())
+        devices.add(t["device"])
+        if "phi0" in t:
+            figures["phi0_steps"] = t["phi0"]["steps"]
+            figures["phi0_steps_per_s"] = t["phi0"]["steps_per_s"]
+        figures["round_steps"] = t["round_steps"]
+        figures["batch_size"] = t["batch_size"]
+        for name in ("control", "oracle", "loop1"):
+            if name in t:
+                figures[f"{ARMS[name][0]}_round_steps_per_s"] = t[name]["steps_per_s"]
+    loop_settings, _ = recorded_run("toy", args.loop_run)
+    rows = shards.read_table(loop_settings.layout.stage_dir(1, "fit")).to_pylist()
+    gt = evaluation_truth.load_ground_truth(Path(loop_settings.collection["ground_truth"]) / "ground_truth.npz")
+    quality = pose_quality(rows, gt, load_rig(loop_settings.assets.asset))
+    figures.update({f"fit_{k}": round(float(v), 3) for k, v in quality.items()})
+    figures.update(filter_figures(loop_settings.layout, 1))
+    infer = {name: settings.layout.root / "gpu" / tag / name / "test_infer"
+             for tag, names in (("call1", ("phi0", "control", "oracle")), ("call2", ("loop1",))) for name in names}
+    figures.update(map_error_figures(settings, {ARMS[n][0]: f for n, f in infer.items() if f.is_dir()}))
+    lines = verdict_lines(figures)
+    lines.insert(2, f"camera rotation error ΔR: Φ₀ {figures['rot_err_deg_phi0_iter0']:.1f}°, control {c:.1f}°, oracle "
+                    f"{o:.1f}°, loop {lp:.1f}° (the loop closes {figures['loop_rot_gap_recovered']:.0%} of the "
+                    "control -> oracle gap in ΔR)")
+    lines.append(f"fits of Φ₀'s collection predictions: median vertex error {quality['median_vertex_err_cm']:.2f} cm "
+                 f"against {quality['median_rest_pose_vertex_err_cm']:.2f} for the rest pose (goal: below it: "
+                 f"{'met' if quality['median_vertex_err_cm'] < quality['median_rest_pose_vertex_err_cm'] else 'NOT met'}"
+                 f"); {quality['pct_better_than_rest']:.1f} % beat the rest pose"
+                 + (f"; the filter's kept half beats it with precision {figures['filter_precision']:.2f} (goal >= 0.8: "
+                    f"{'met' if figures['filter_precision'] >= 0.8 else 'NOT met'})" if "filter_precision" in figures
+                    else ""))
+    notes = (f"toy at {settings.model.resolution}x{settings.model.resolution}, run {args.run_name!r} (bench preset, "
+             f"overrides {parameters['overrides']}); the data (canonical "
+             f"renders, collection, test split, the oracle's true labels, the loop's renders of its filtered fits, "
+             f"run {args.loop_run!r}) made on this machine, every model trained on {', '.join(sorted(devices))} by "
+             f"benchmarks/gpu_rounds.py: Φ₀ {figures.get('phi0_steps', 0):.0f} steps, then one warm-started round of "
+             f"{figures['round_steps']:.0f} steps per arm, batch {figures['batch_size']:.0f}. " + "; ".join(lines))
+    record(args.record_as, figures, notes=notes, results_dir=args.results_dir)
+    print(notes, flush=True)
+    return figures
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -355,6 +435,14 @@ def main(argv: list[str] | None = None) -> None:
     ev.add_argument("--tag", default="call1")
     ev.add_argument("--json", required=True)
     ev.set_defaults(func=_evaluate)
+    rc = sub.add_parser("record", help="results/<record-as>.json and RESULTS.md from evaluations and timings")
+    rc.add_argument("--run-name", required=True)
+    rc.add_argument("--loop-run", required=True, help="the bootstrap run whose iteration 1 made the loop's data")
+    rc.add_argument("--evaluations", nargs="+", required=True, help="evaluate --json files")
+    rc.add_argument("--timings", nargs="+", required=True, help="timings.json files of the train calls")
+    rc.add_argument("--record-as", default="fidelity_gpu64")
+    rc.add_argument("--results-dir", type=Path, default=None)
+    rc.set_defaults(func=_record)
     args = p.parse_args(argv)
     args.func(args)
 
