@@ -32,7 +32,7 @@ import argparse
 import dataclasses
 import io
 import json
-import os
+import math
 import shutil
 import subprocess
 import sys
@@ -311,6 +311,7 @@ def _evaluate(args: argparse.Namespace) -> None:
         out = settings.layout.root / "gpu" / args.tag / name
         row = _test_metrics(settings, ckpt, out, iteration, seed=seed + iteration)
         rows[name] = {k: row[k] for k in ("mcd_cm", "pct_mcd_over_5cm", "rot_err_deg", "mv_mcd_cm") if k in row}
+        rows[name]["test_infer"] = str(out / "test_infer")
         print(f"{name}: test mCD {row['mcd_cm']:.2f} cm, >5 cm {row['pct_mcd_over_5cm']:.1f} %, "
               f"ΔR {row['rot_err_deg']:.1f}°", flush=True)
     from bench_fidelity import map_floors
@@ -330,7 +331,7 @@ def _record(args: argparse.Namespace) -> dict:
     timings (``timings.json``) and the loop run's fits (their pose errors against the hidden truth, the filter's
     precision), with ``bench_fidelity``'s verdict lines."""
     from _results import record
-    from bench_fidelity import map_error_figures, verdict_lines
+    from bench_fidelity import gap_recovered, map_error_figures, verdict_lines
     from bench_fit_oracle import filter_figures, pose_quality
 
     from bat3r_core import evaluation_truth
@@ -354,9 +355,11 @@ def _record(args: argparse.Namespace) -> dict:
         figures[f"rot_err_deg_{arm}_iter0"] = figures["rot_err_deg_phi0_iter0"]
     control, oracle, loop = (figures[f"mcd_{a}_iter1"] for a in ("control", "oracle", "loop"))
     figures["headroom"] = round(oracle / control, 3)
-    figures["loop_gap_recovered"] = round((control - loop) / (control - oracle), 3)
     c, o, lp = (figures[f"rot_err_deg_{a}_iter1"] for a in ("control", "oracle", "loop"))
-    figures["loop_rot_gap_recovered"] = round((c - lp) / (c - o), 3)
+    for key, share in (("loop_gap_recovered", gap_recovered(control, oracle, loop)),
+                       ("loop_rot_gap_recovered", gap_recovered(c, o, lp))):
+        if math.isfinite(share):  # NaN: the oracle is no better than the control, no gap to close
+            figures[key] = round(share, 3)
     devices = set()
     for path in args.timings:
         t = json.loads(Path(path).read_text())
@@ -375,13 +378,12 @@ def _record(args: argparse.Namespace) -> dict:
     quality = pose_quality(rows, gt, load_rig(loop_settings.assets.asset))
     figures.update({f"fit_{k}": round(float(v), 3) for k, v in quality.items()})
     figures.update(filter_figures(loop_settings.layout, 1))
-    infer = {name: settings.layout.root / "gpu" / tag / name / "test_infer"
-             for tag, names in (("call1", ("phi0", "control", "oracle")), ("call2", ("loop1",))) for name in names}
-    figures.update(map_error_figures(settings, {ARMS[n][0]: f for n, f in infer.items() if f.is_dir()}))
+    figures.update(map_error_figures(settings, {ARMS[n][0]: Path(row["test_infer"]) for n, row in tests.items()}))
     lines = verdict_lines(figures)
     lines.insert(2, f"camera rotation error ΔR: Φ₀ {figures['rot_err_deg_phi0_iter0']:.1f}°, control {c:.1f}°, oracle "
-                    f"{o:.1f}°, loop {lp:.1f}° (the loop closes {figures['loop_rot_gap_recovered']:.0%} of the "
-                    "control -> oracle gap in ΔR)")
+                    f"{o:.1f}°, loop {lp:.1f}°" + (f" (the loop closes {figures['loop_rot_gap_recovered']:.0%} of the "
+                                                  "control -> oracle gap in ΔR)" if "loop_rot_gap_recovered" in figures
+                                                  else ""))
     lines.append(f"fits of Φ₀'s collection predictions: median vertex error {quality['median_vertex_err_cm']:.2f} cm "
                  f"against {quality['median_rest_pose_vertex_err_cm']:.2f} for the rest pose (goal: below it: "
                  f"{'met' if quality['median_vertex_err_cm'] < quality['median_rest_pose_vertex_err_cm'] else 'NOT met'}"

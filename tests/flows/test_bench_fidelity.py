@@ -220,3 +220,59 @@ def test_verdicts_follow_the_recorded_figures():
     fits = B.verdict_lines({**figs, "mcd_oracle_on_collection": 4.0})
     assert fits[2].endswith("4.00 cm against 6.00 on the test split: it fits its training images better than unseen "
                             "ones") and fits[3].startswith("paper's ablation ordering holds")
+
+
+def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_run, catalog, tmp_path):
+    """pack → train (here on the CPU) → evaluate → the loop's pack from the run's own iteration-1 renders → train
+    from the returned Φ₀ → evaluate → record: the commands README's "At 64×64" section runs across two machines."""
+    import gpu_rounds as G
+    import torch
+
+    from bat3r_core.predictor.infer import load_predictor
+
+    _, out = bench_run
+    layout = RunLayout(catalog / "runs", "toy", "bt")
+    p1, o1, p2, o2 = (tmp_path / n for n in ("p1", "o1", "p2", "o2"))
+    G.main(["pack", "--run-name", "bt", "--out", str(p1)])
+    plan = json.loads((p1 / "plan.json").read_text())
+    canonical = shards.read_table(layout.stage_dir(0, "render")).num_rows
+    assert plan["samples"] == {"canonical": canonical, "oracle": 8}
+    G.main(["train", "--pack", str(p1), "--out", str(o1), "--work", str(tmp_path / "w1"), "--phi0-steps", "3",
+            "--round-steps", "2"])
+    G.main(["pack", "--run-name", "bt", "--loop-iteration", "1", "--out", str(p2)])
+    loop_samples = sum(1 for r in shards.read_table(layout.stage_dir(1, "render")).to_pylist() if r["status"] == "ok")
+    assert json.loads((p2 / "plan.json").read_text())["samples"] == {"loop1": loop_samples}
+    G.main(["train", "--pack", str(p2), "--out", str(o2), "--work", str(tmp_path / "w2"), "--phi0",
+            str(o1 / "phi0.pt"), "--round-steps", "2"])
+    # every round starts from the float16 Φ₀ that came back, and takes the same steps
+    t1, t2 = (json.loads((o / "timings.json").read_text()) for o in (o1, o2))
+    assert t1["phi0"]["steps"] == 3 and t1["control"]["steps"] == t1["oracle"]["steps"] == t2["loop1"]["steps"] == 2
+    for o, name in ((o1, "phi0"), (o1, "oracle"), (o2, "loop1")):
+        state = torch.load(o / f"{name}.pt", map_location="cpu", weights_only=True)
+        assert {v.dtype for v in state["model"].values() if v.is_floating_point()} == {torch.float16}
+        load_predictor(o / f"{name}.pt", "cpu")
+    e1, e2 = tmp_path / "e1.json", tmp_path / "e2.json"
+    G.main(["evaluate", "--run-name", "bt", "--predictors", str(o1), "--json", str(e1)])
+    G.main(["evaluate", "--run-name", "bt", "--predictors", str(o2), "--names", "loop1", "--tag", "call2",
+            "--json", str(e2)])
+    figures = G._record(G.argparse.Namespace(
+        run_name="bt", loop_run="bt", evaluations=[str(e1), str(e2)], timings=[str(o1 / "timings.json"),
+                                                                               str(o2 / "timings.json")],
+        record_as="gpu_rounds_tiny", results_dir=out))
+    rows = {**json.loads(e1.read_text()), **json.loads(e2.read_text())}
+    assert figures["mcd_control_iter1"] == round(rows["control"]["mcd_cm"], 3)
+    assert figures["mcd_loop_iter1"] == round(rows["loop1"]["mcd_cm"], 3)
+    assert figures["mcd_oracle_iter0"] == figures["mcd_loop_iter0"] == round(rows["phi0"]["mcd_cm"], 3)
+    assert figures["headroom"] == pytest.approx(figures["mcd_oracle_iter1"] / figures["mcd_control_iter1"], abs=2e-3)
+    c, o, lp = (figures[f"mcd_{a}_iter1"] for a in ("control", "oracle", "loop"))
+    if c != o:
+        assert figures["loop_gap_recovered"] == pytest.approx((c - lp) / (c - o), abs=2e-3)
+    # the loop's fits against the truth and the run's own filter check are in the record
+    ok_fits = sum(1 for r in shards.read_table(layout.stage_dir(1, "fit")).to_pylist() if r["status"] == "ok")
+    assert figures["fit_fitted"] == ok_fits
+    check = json.loads((layout.stage_dir(1, "evaluate") / "pseudo_label_filter.json").read_text())
+    assert figures["filter_precision"] == round(check["precision"], 3)
+    for arm in ("phi0", "control", "oracle", "loop"):
+        assert f"depth_err_rms_cm_{arm}" in figures
+    recorded = json.loads((out / "gpu_rounds_tiny.json").read_text())
+    assert recorded["round_steps"] == 2 and "headroom oracle/control" in recorded["notes"]
