@@ -398,6 +398,12 @@ def _record(args: argparse.Namespace) -> dict:
              f"benchmarks/gpu_rounds.py: Φ₀ {figures.get('phi0_steps', 0):.0f} steps, then one warm-started round of "
              f"{figures['round_steps']:.0f} steps per arm, batch {figures['batch_size']:.0f}. " + "; ".join(lines))
     record(args.record_as, figures, notes=notes, results_dir=args.results_dir)
+    from _results import RESULTS_DIR
+    from bench_fidelity import plot
+
+    arms = {arm: {0: {"mcd_cm": figures["mcd_phi0_iter0"]}, 1: {"mcd_cm": figures[f"mcd_{arm}_iter1"]}}
+            for arm in ("loop", "control", "oracle")}
+    plot(Path(args.results_dir or RESULTS_DIR) / f"{args.record_as}.png", arms, figures)
     print(notes, flush=True)
     return figures
 

@@ -265,8 +265,10 @@ def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_ru
     assert figures["mcd_oracle_iter0"] == figures["mcd_loop_iter0"] == round(rows["phi0"]["mcd_cm"], 3)
     assert figures["headroom"] == pytest.approx(figures["mcd_oracle_iter1"] / figures["mcd_control_iter1"], abs=2e-3)
     c, o, lp = (figures[f"mcd_{a}_iter1"] for a in ("control", "oracle", "loop"))
-    if c != o:
+    if c > o:  # a gap to close: the loop's share of it
         assert figures["loop_gap_recovered"] == pytest.approx((c - lp) / (c - o), abs=2e-3)
+    else:  # none (tiny models): no share is recorded, rather than a meaningless or infinite one
+        assert "loop_gap_recovered" not in figures
     # the loop's fits against the truth and the run's own filter check are in the record
     ok_fits = sum(1 for r in shards.read_table(layout.stage_dir(1, "fit")).to_pylist() if r["status"] == "ok")
     assert figures["fit_fitted"] == ok_fits
@@ -274,5 +276,6 @@ def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_ru
     assert figures["filter_precision"] == round(check["precision"], 3)
     for arm in ("phi0", "control", "oracle", "loop"):
         assert f"depth_err_rms_cm_{arm}" in figures
+    assert (out / "gpu_rounds_tiny.png").stat().st_size > 0
     recorded = json.loads((out / "gpu_rounds_tiny.json").read_text())
     assert recorded["round_steps"] == 2 and "headroom oracle/control" in recorded["notes"]
