@@ -8,6 +8,15 @@ bases, never zero for any pair (:data:`VIEW_TRANSITIONS`; the front row is the r
 the azimuth is uniform over the type's range, elevation and roll come from that type's Student's t, and the camera
 is framed around the fitted mesh with a relative margin ``U(0.1, 0.25)`` (:func:`bat3r_core.viewpoints.frame_camera`).
 
+The estimated view keeps the recovered camera's direction (azimuth, elevation and roll in the body frame) and is
+framed the same way (``AugmentConfig.estimated_framing = "canonical"``): its optical axis passes through the body
+origin and its principal point is where the framing centres the mesh, as in every canonical render, augmented view
+and collection crop of the toy. The recovered camera itself (``"recovered"``) has the principal point at the centre
+of the crop it was fitted in: its posed map's x, y are measured from another axis, and the network, which does not
+see the intrinsics, is taught two answers for the same picture. Measured at 64×64: a third of the loop's renders
+had the principal point 6.5 px from where every other training render has it, and the loop's test predictions were
+shifted by 9.5 cm vertically on average (README, "At 64×64").
+
 The world of the jobs is the canonical frame: the fitted mesh is the rig posed by θ with unit bone scales and an
 identity global similarity; cameras are world → camera.
 """
@@ -19,8 +28,8 @@ import numpy as np
 
 from bat3r_core.cameras import PinholeCamera
 from bat3r_core.render.jobs import RenderJob
-from bat3r_core.viewpoints import (VIEW_TYPES, BodyFrame, CameraPriorConfig, frame_camera, view_type,
-                                   wrap_degrees)
+from bat3r_core.viewpoints import (VIEW_TYPES, BodyFrame, CameraPriorConfig, frame_camera, spherical_from_camera,
+                                   view_type, wrap_degrees)
 
 __all__ = ["VIEW_TRANSITIONS", "AZIMUTH_RANGES", "AugmentConfig", "base_view_type", "sample_extra_view_types",
            "plan_views", "plan_views_for_fits"]
@@ -52,6 +61,8 @@ class AugmentConfig:
         num_textures: texture ids are drawn uniformly from ``[0, num_textures)``.
         num_envmaps: environment maps drawn from ``[0, num_envmaps)``; 0 → ``-1`` (procedural sky).
         include_estimated: also emit the job of the estimated (fitted) camera itself (view_kind ``estimated``).
+        estimated_framing: ``"canonical"``: the estimated view is the recovered camera's direction framed like the
+            canonical renders (see the module docstring); ``"recovered"``: the recovered camera as it is.
         augment: add the 1–2 augmented views (False: the "no viewpoint augmentation" ablation).
     """
 
@@ -65,6 +76,7 @@ class AugmentConfig:
     num_textures: int = 1
     num_envmaps: int = 0
     include_estimated: bool = True
+    estimated_framing: str = "canonical"
     augment: bool = True
 
     def __post_init__(self) -> None:
@@ -78,6 +90,9 @@ class AugmentConfig:
             if set(row) != set(VIEW_TYPES) or min(row.values()) <= 0 or abs(sum(row.values()) - 1.0) > 1e-6:
                 raise ValueError(f"AugmentConfig.transitions[{base!r}] must give every view type a probability > 0 "
                                  f"summing to 1, got {row}")
+        if self.estimated_framing not in ("canonical", "recovered"):
+            raise ValueError(f"AugmentConfig.estimated_framing must be 'canonical' or 'recovered', got "
+                             f"{self.estimated_framing!r}")
         if self.num_textures < 1 or self.num_envmaps < 0:
             raise ValueError(f"AugmentConfig needs num_textures >= 1 and num_envmaps >= 0, got "
                              f"{self.num_textures}, {self.num_envmaps}")
@@ -160,7 +175,13 @@ def plan_views(source_id: str, excess_rotations: np.ndarray, world_vertices: np.
 
     jobs = []
     if config.include_estimated:
-        jobs.append(job(f"{source_id}-est", "estimated", base, camera))
+        estimated = camera
+        if config.estimated_framing == "canonical":
+            c = spherical_from_camera(frame, camera)
+            margin = float(rng.uniform(*config.camera_prior.margin_range))
+            estimated = frame_camera(world_vertices, frame, c.azimuth_deg, c.elevation_deg, c.roll_deg,
+                                     config.camera_prior.fov_deg, width, height, margin).camera
+        jobs.append(job(f"{source_id}-est", "estimated", base, estimated))
     extra = sample_extra_view_types(base, config, rng) if config.augment else []
     for k, vtype in enumerate(extra):
         vp = _new_view(world_vertices, frame, vtype, config, width, height, rng)

@@ -75,13 +75,30 @@ def test_plan_views_jobs(toy_scene):
     config = AugmentConfig(num_textures=4, num_envmaps=3)
     jobs = plan_views("img-7", theta, verts, frame, cam, config, np.random.default_rng(31))
     assert jobs[0].sample_id == "img-7-est" and jobs[0].view_kind == "estimated" and jobs[0].view_type == "left"
-    assert jobs[0].camera is cam
+    # the estimated view: the recovered camera's direction, framed like every canonical render (optical axis through
+    # the body origin, principal point where the framing centres the mesh), not the recovered intrinsics
+    est = jobs[0].camera
+    a, b = spherical_from_camera(frame, est), spherical_from_camera(frame, cam)
+    assert (a.azimuth_deg, a.elevation_deg, a.roll_deg) == pytest.approx((b.azimuth_deg, b.elevation_deg,
+                                                                           b.roll_deg), abs=1e-6)
+    uv, _ = est.project(frame.origin[None])
+    assert uv[0] == pytest.approx([est.cx, est.cy], abs=1e-6)
+    box = est.project(verts)[0]
+    assert (box.min(0) + box.max(0)) / 2 == pytest.approx([64.0, 64.0], abs=1e-6)  # centred by the principal point
+    assert abs(est.cy - cam.cy) > 1.0  # the recovered camera (centred principal point) framed it elsewhere
+    recovered = plan_views("img-7", theta, verts, frame, cam,
+                           AugmentConfig(num_textures=4, num_envmaps=3, estimated_framing="recovered"),
+                           np.random.default_rng(31))
+    assert recovered[0].camera is cam
+    with pytest.raises(ValueError, match="estimated_framing must be 'canonical' or 'recovered', got 'photo'"):
+        AugmentConfig(estimated_framing="photo")
     aug = jobs[1:]
     assert 1 <= len(aug) <= 2 and all(j.view_kind == "augmented" and j.source_id == "img-7" for j in aug)
-    for j in aug:
+    for j in jobs:
         c = spherical_from_camera(frame, j.camera)
-        lo, hi = AZIMUTH_RANGES[j.view_type]
-        assert lo <= (c.azimuth_deg if c.azimuth_deg >= lo else c.azimuth_deg + 360) < hi
+        if j.view_kind == "augmented":
+            lo, hi = AZIMUTH_RANGES[j.view_type]
+            assert lo <= (c.azimuth_deg if c.azimuth_deg >= lo else c.azimuth_deg + 360) < hi
         # the mesh is framed: every vertex inside the image with at least 10 % margin on the tight side
         uv, depth = j.camera.project(verts)
         assert np.all(depth > 0)

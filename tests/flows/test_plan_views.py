@@ -57,8 +57,10 @@ def test_plan_views_task(prefect_harness, tmp_path, toy_rig):
         assert 2 <= len(group) <= 3  # the estimated view and 1-2 augmented views
         (est,) = [j for j in group if j.view_kind == "estimated"]
         row = next(r for r in rows if r["sample_id"] == source)
-        np.testing.assert_allclose(est.camera.R.reshape(-1), row["camera_rotation"])
-        np.testing.assert_allclose(est.camera.t, row["camera_translation"])
+        # the rows' cameras look at the body origin already (canonical views): the estimated view keeps that
+        # orientation and the line of sight, and only its distance follows its own framing margin
+        np.testing.assert_allclose(est.camera.R.reshape(-1), row["camera_rotation"], atol=1e-9)
+        np.testing.assert_allclose(est.camera.t[:2], row["camera_translation"][:2], atol=1e-9)
         assert all(j.view_kind == "augmented" for j in group if j is not est)
     # the task is the library call with the shard's seed
     direct = plan_views_for_fits(load_rig(asset), rows, body, AugmentConfig(num_textures=4), seed=_shard_seed(11, 3))
