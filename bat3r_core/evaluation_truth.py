@@ -6,7 +6,7 @@ in :mod:`bat3r_core.evaluation`; the no-ground-truth mask IoUs in :mod:`bat3r_co
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
@@ -204,6 +204,8 @@ class MapErrors:
     depth: (M,) metres, error of the posed point's camera z relative to the object depth (what the network
         predicts: ``P - (0, 0, object_depth)``). lateral: (M,) metres, norm of the posed point's x, y error.
     canonical: (M,) metres, norm of the canonical point's error.
+    lateral_bias: (2,) metres, the mean signed x, y error over the entries (0 when there are none): a whole map
+        shifted sideways or vertically, as a training set whose x, y follow another principal point teaches.
     depth_correlation: Pearson correlation of the predicted and true relative depths over the entries (NaN with
         fewer than 3 entries or no spread): negative when the map's depth order is reversed (the animal seen
         facing the camera instead of away, the near flank predicted far).
@@ -215,6 +217,7 @@ class MapErrors:
     canonical: np.ndarray
     depth_correlation: float
     occupancy_iou: float
+    lateral_bias: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
 
 def map_errors(pred_posed: np.ndarray, pred_canonical: np.ndarray, pred_occupancy: np.ndarray,
@@ -241,14 +244,17 @@ def map_errors(pred_posed: np.ndarray, pred_canonical: np.ndarray, pred_occupanc
     if len(e) >= 3 and np.std(p_pred[:, 2]) > 0 and np.std(p_true[:, 2]) > 0:
         corr = float(np.corrcoef(p_pred[:, 2], p_true[:, 2])[0, 1])
     return MapErrors(depth=np.abs(e[:, 2]), lateral=np.linalg.norm(e[:, :2], axis=1), canonical=q,
-                     depth_correlation=corr, occupancy_iou=1.0 if union == 0 else float(both.sum() / union))
+                     depth_correlation=corr, occupancy_iou=1.0 if union == 0 else float(both.sum() / union),
+                     lateral_bias=e[:, :2].mean(axis=0) if len(e) else np.zeros(2))
 
 
 def summarise_map_errors(errors: Sequence[MapErrors], tail: float = 0.1) -> dict[str, float]:
     """Figures of a split's :class:`MapErrors` (entries of all images pooled, cm): ``depth_err_median_cm``,
     ``depth_err_rms_cm``, ``depth_err_tail_share`` (the share of the summed squared depth error carried by the
     worst ``tail`` fraction of entries: near ``tail`` for even errors, near 1 when a few gross errors dominate),
-    ``lateral_err_rms_cm``, ``canonical_err_median_cm``, ``canonical_err_rms_cm``, ``depth_reversed_pct`` (images
+    ``lateral_err_rms_cm``, ``lateral_bias_x_cm`` and ``lateral_bias_y_cm`` (the images' mean signed x, y errors,
+    averaged over images: a shift every image shares), ``lateral_bias_abs_cm`` (the mean norm of each image's
+    shift), ``canonical_err_median_cm``, ``canonical_err_rms_cm``, ``depth_reversed_pct`` (images
     whose depth correlation is negative), ``occupancy_iou`` (mean) and ``n_images``."""
     if not 0.0 < tail < 1.0:
         raise ValueError(f"tail: expected a fraction in (0, 1), got {tail}")
@@ -265,6 +271,9 @@ def summarise_map_errors(errors: Sequence[MapErrors], tail: float = 0.1) -> dict
     return {"depth_err_median_cm": float(np.median(depth)), "depth_err_rms_cm": float(np.sqrt(np.mean(sq))),
             "depth_err_tail_share": float(sq[:worst].sum() / sq.sum()) if sq.sum() > 0 else 0.0,
             "lateral_err_rms_cm": float(np.sqrt(np.mean(lateral ** 2))),
+            "lateral_bias_x_cm": float(100.0 * np.mean([m.lateral_bias[0] for m in errors])),
+            "lateral_bias_y_cm": float(100.0 * np.mean([m.lateral_bias[1] for m in errors])),
+            "lateral_bias_abs_cm": float(100.0 * np.mean([np.linalg.norm(m.lateral_bias) for m in errors])),
             "canonical_err_median_cm": float(np.median(canonical)),
             "canonical_err_rms_cm": float(np.sqrt(np.mean(canonical ** 2))),
             "depth_reversed_pct": float(100.0 * np.mean(corr[np.isfinite(corr)] < 0)) if np.isfinite(corr).any()

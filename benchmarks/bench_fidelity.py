@@ -181,7 +181,7 @@ def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed
 
 
 MAP_ERROR_FIGURES = ("depth_err_median_cm", "depth_err_rms_cm", "depth_err_tail_share", "depth_reversed_pct",
-                     "lateral_err_rms_cm")
+                     "lateral_err_rms_cm", "lateral_bias_y_cm", "lateral_bias_abs_cm")
 """The figures of ``evaluation_truth.summarise_map_errors`` recorded per predictor (``<figure>_<name>``)."""
 
 
@@ -190,7 +190,7 @@ def map_error_figures(settings, predictions: dict[str, Path]) -> dict[str, float
     test_infer folder of Φ₀, the control's and the oracle's last round, the loop's last iteration) against the
     exact maps of the test split (``evaluation_truth.prediction_map_errors``), per map entry: median and RMS depth
     error, the share of the squared depth error carried by the worst 10 % of entries, the % of images whose depth
-    order is reversed, and the lateral RMS error. Cached in ``fidelity/map_errors/<name>.json``."""
+    order is reversed, the lateral RMS error and the mean lateral shift (vertical, and its size). Cached in ``fidelity/map_errors/<name>.json``."""
     from bat3r_core.evaluation_truth import prediction_map_errors, summarise_map_errors
 
     gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
@@ -198,8 +198,10 @@ def map_error_figures(settings, predictions: dict[str, Path]) -> dict[str, float
     rig = load_rig(settings.assets.asset)
     figures = {}
     for name, folder in predictions.items():
-        summary = _cached_row(settings.layout.root / "fidelity" / "map_errors" / f"{name}.json",
-                              lambda f=folder: summarise_map_errors(prediction_map_errors(f, rows, gt, rig)))
+        cache = settings.layout.root / "fidelity" / "map_errors" / f"{name}.json"
+        if cache.is_file() and not set(MAP_ERROR_FIGURES) <= set(json.loads(cache.read_text())):
+            cache.unlink()  # written before a figure was added: recompute
+        summary = _cached_row(cache, lambda f=folder: summarise_map_errors(prediction_map_errors(f, rows, gt, rig)))
         figures.update({f"{k}_{name}": round(float(summary[k]), 3) for k in MAP_ERROR_FIGURES})
     return figures
 

@@ -370,6 +370,8 @@ def test_map_errors_against_hand_computation():
     assert len(m.depth) == n
     np.testing.assert_allclose(m.depth, 0.04, atol=1e-9)
     np.testing.assert_allclose(m.lateral, 0.03, atol=1e-9)
+    np.testing.assert_allclose(m.lateral_bias, [0.03, 0.0], atol=1e-9)   # the whole map shifted 3 cm sideways
+    np.testing.assert_allclose(exact.lateral_bias, [0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(m.canonical, 0.12, atol=1e-9)
     assert m.occupancy_iou == pytest.approx(n / occ.size)
     assert m.depth_correlation == pytest.approx(1.0)   # a constant offset keeps the depth order
@@ -406,6 +408,15 @@ def test_summarise_map_errors_tail_share_and_reversed_images_by_hand():
     assert s["canonical_err_median_cm"] == pytest.approx(2.0)
     assert s["depth_reversed_pct"] == pytest.approx(50.0)           # of the 2 images with a correlation
     assert s["occupancy_iou"] == pytest.approx(0.5)
+    assert s["lateral_bias_y_cm"] == 0.0 and s["lateral_bias_abs_cm"] == 0.0
+    # one image shifted 6 cm up (camera y down: -6), one 2 cm sideways: the mean shift and the mean shift size
+    shifted = [T.MapErrors(depth=np.zeros(3), lateral=np.full(3, 0.06), canonical=np.zeros(3), depth_correlation=1.0,
+                           occupancy_iou=1.0, lateral_bias=np.array([0.0, -0.06])),
+               T.MapErrors(depth=np.zeros(3), lateral=np.full(3, 0.02), canonical=np.zeros(3), depth_correlation=1.0,
+                           occupancy_iou=1.0, lateral_bias=np.array([0.02, 0.0]))]
+    s = T.summarise_map_errors(shifted)
+    assert s["lateral_bias_x_cm"] == pytest.approx(1.0) and s["lateral_bias_y_cm"] == pytest.approx(-3.0)
+    assert s["lateral_bias_abs_cm"] == pytest.approx(4.0)
     with pytest.raises(ValueError, match="tail"):
         T.summarise_map_errors(even, tail=1.5)
     with pytest.raises(ValueError, match="no image"):
