@@ -228,11 +228,13 @@ def _train(args: argparse.Namespace) -> None:
     plan = json.loads((pack / "plan.json").read_text())
     if plan.get("format") != PACK_FORMAT:
         raise ValueError(f"{pack / 'plan.json'}: expected pack format {PACK_FORMAT}, got {plan.get('format')}")
-    if args.batch_size is not None:  # every model of the call (Φ₀ and each round) at this batch size
-        plan["train_overrides"] = {"batch_size": int(args.batch_size)}
+    overrides = {k: int(v) for k, v in (("batch_size", args.batch_size), ("warmup_steps", args.warmup_steps))
+                 if v is not None}
+    if overrides:  # every model of the call (Φ₀ and each round) with these settings
+        plan["train_overrides"] = overrides
         (work / "plan.json").parent.mkdir(parents=True, exist_ok=True)
         (work / "plan.json").write_text(json.dumps(plan))
-    plan_file = work / "plan.json" if args.batch_size is not None else pack / "plan.json"
+    plan_file = work / "plan.json" if overrides else pack / "plan.json"
     t_start = time.perf_counter()
     timings: dict = {"device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
                      "torch": torch.__version__, "run_name": plan["run_name"], "samples": plan["samples"]}
@@ -408,6 +410,30 @@ def _record(args: argparse.Namespace) -> dict:
     return figures
 
 
+def _compare(args: argparse.Namespace) -> dict:
+    """``results/<record-as>.json``: the test mCD, ΔR and map errors (``bench_fidelity.map_error_figures``) of the
+    predictors of ``evaluate --json`` files side by side, with ``--notes`` saying what differs between them."""
+    from _results import record
+    from bench_fidelity import map_error_figures
+
+    from flows._settings import recorded_run
+
+    settings, _ = recorded_run("toy", args.run_name)
+    figures: dict[str, float] = {}
+    infer = {}
+    for path in args.evaluations:
+        data = json.loads(Path(path).read_text())
+        data.pop("floors", None)
+        for name, row in data.items():
+            figures[f"mcd_{name}"] = round(row["mcd_cm"], 3)
+            figures[f"rot_err_deg_{name}"] = round(row["rot_err_deg"], 1)
+            infer[name] = Path(row["test_infer"])
+    figures.update(map_error_figures(settings, infer))
+    record(args.record_as, figures, notes=args.notes, results_dir=args.results_dir)
+    print(json.dumps(figures, indent=1), flush=True)
+    return figures
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -427,6 +453,7 @@ def main(argv: list[str] | None = None) -> None:
     tr.add_argument("--round-steps", type=int, default=None)
     tr.add_argument("--rounds", nargs="*", default=None, help="rounds to train (default: one per packed set)")
     tr.add_argument("--batch-size", type=int, default=None, help="override the run's batch size for every model")
+    tr.add_argument("--warmup-steps", type=int, default=None, help="override the run's warm-up for every model")
     tr.set_defaults(func=_train)
     one = sub.add_parser("train-one", help=argparse.SUPPRESS)
     one.add_argument("--plan", required=True)
@@ -451,6 +478,13 @@ def main(argv: list[str] | None = None) -> None:
     rc.add_argument("--record-as", default="fidelity_gpu64")
     rc.add_argument("--results-dir", type=Path, default=None)
     rc.set_defaults(func=_record)
+    cp = sub.add_parser("compare", help="results/<record-as>.json: predictors of evaluate --json files side by side")
+    cp.add_argument("--run-name", required=True)
+    cp.add_argument("--evaluations", nargs="+", required=True)
+    cp.add_argument("--record-as", required=True)
+    cp.add_argument("--notes", default="")
+    cp.add_argument("--results-dir", type=Path, default=None)
+    cp.set_defaults(func=_compare)
     args = p.parse_args(argv)
     args.func(args)
 

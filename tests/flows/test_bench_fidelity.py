@@ -279,3 +279,8 @@ def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_ru
     assert (out / "gpu_rounds_tiny.png").stat().st_size > 0
     recorded = json.loads((out / "gpu_rounds_tiny.json").read_text())
     assert recorded["round_steps"] == 2 and "headroom oracle/control" in recorded["notes"]
+    # compare: predictors of evaluation files side by side, with the mean lateral shift of each
+    side = G._compare(G.argparse.Namespace(run_name="bt", evaluations=[str(e1)], record_as="gpu_rounds_cmp",
+                                           notes="tiny", results_dir=out))
+    assert side["mcd_oracle"] == round(rows["oracle"]["mcd_cm"], 3) and "lateral_bias_y_cm_control" in side
+    assert json.loads((out / "gpu_rounds_cmp.json").read_text())["notes"] == "tiny"
