@@ -180,6 +180,9 @@ def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed
     return figures
 
 
+LATERAL_SHIFT_CM = 3.0
+"""A mean vertical shift of a predictor's test maps this large (cm) is called out in the verdict."""
+
 MAP_ERROR_FIGURES = ("depth_err_median_cm", "depth_err_rms_cm", "depth_err_tail_share", "depth_reversed_pct",
                      "lateral_err_rms_cm", "lateral_bias_y_cm", "lateral_bias_abs_cm")
 """The figures of ``evaluation_truth.summarise_map_errors`` recorded per predictor (``<figure>_<name>``)."""
@@ -212,7 +215,8 @@ def map_error_line(figures: dict[str, float]) -> str | None:
         return None
 
     def one(name: str) -> str:
-        f = {k: figures[f"{k}_{name}"] for k in MAP_ERROR_FIGURES}
+        f = {k: figures[f"{k}_{name}"] for k in ("depth_err_median_cm", "depth_err_rms_cm", "depth_err_tail_share",
+                                                   "depth_reversed_pct")}
         return (f"median {f['depth_err_median_cm']:.1f} cm, RMS {f['depth_err_rms_cm']:.1f} cm, the worst 10 % of "
                 f"entries carry {f['depth_err_tail_share']:.0%} of the squared error, "
                 f"{f['depth_reversed_pct']:.0f} % of images with their depth order reversed")
@@ -226,6 +230,12 @@ def map_error_line(figures: dict[str, float]) -> str | None:
         image = f"a {figures['crop_px']:.0f} px image" if "crop_px" in figures else "the image"
         line += (": gross depth errors on a few entries and images (the animal's depth order misread from "
                  f"{image}) dominate even the oracle's error, and training on true poses does not remove them")
+    for name in ("phi0", "control", "oracle", "loop"):
+        shift = figures.get(f"lateral_bias_y_cm_{name}")
+        if shift is not None and abs(shift) >= LATERAL_SHIFT_CM:
+            line += (f"; the {'Φ₀' if name == 'phi0' else name}'s test maps are shifted {abs(shift):.1f} cm "
+                     f"{'up' if shift < 0 else 'down'} on average (what training renders whose x, y follow another "
+                     "principal point teach, docs/fitting.md)")
     return line
 
 

@@ -220,6 +220,10 @@ def test_verdicts_follow_the_recorded_figures():
     fits = B.verdict_lines({**figs, "mcd_oracle_on_collection": 4.0})
     assert fits[2].endswith("4.00 cm against 6.00 on the test split: it fits its training images better than unseen "
                             "ones") and fits[3].startswith("paper's ablation ordering holds")
+    shifted = B.verdict_lines({**figs, **errors, "lateral_bias_y_cm_phi0": -0.4, "lateral_bias_y_cm_oracle": -9.9})
+    assert shifted[2].endswith("; the oracle's test maps are shifted 9.9 cm up on average (what training renders "
+                               "whose x, y follow another principal point teach, docs/fitting.md)")
+    assert "Φ₀'s test maps are shifted" not in shifted[2]
 
 
 def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_run, catalog, tmp_path):
