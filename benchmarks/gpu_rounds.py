@@ -40,6 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -130,8 +131,6 @@ def unpack_folder(src: Path, dst: Path) -> int:
         with np.load(packed_npz, allow_pickle=False) as z:
             arrays = unpack_arrays({k: z[k] for k in z.files})
         index = int(stem.split("-")[1])
-        import pyarrow.parquet as pq
-
         table = pq.read_table(src / f"{stem}.parquet")
         shards.write_shard(dst, index, table, arrays)
         n += table.num_rows
@@ -328,6 +327,17 @@ ARMS = {"phi0": ("phi0", 0), "control": ("control", 1), "oracle": ("oracle", 1),
 """Predictor file name → (arm, iteration) in ``bench_fidelity``'s figure names."""
 
 
+def read_evaluations(paths: list[str]) -> tuple[dict[str, float], dict[str, dict]]:
+    """The map floors and the per-predictor test rows of ``evaluate --json`` files (later files win a name)."""
+    floors: dict[str, float] = {}
+    rows: dict[str, dict] = {}
+    for path in paths:
+        data = json.loads(Path(path).read_text())
+        floors.update({k: float(v) for k, v in data.pop("floors", {}).items()})
+        rows.update(data)
+    return floors, rows
+
+
 def _record(args: argparse.Namespace) -> dict:
     """``benchmarks/results/<record-as>.json`` and RESULTS.md from the evaluations (``evaluate --json``), the device
     timings (``timings.json``) and the loop run's fits (their pose errors against the hidden truth, the filter's
@@ -341,12 +351,8 @@ def _record(args: argparse.Namespace) -> dict:
     from flows._settings import recorded_run
 
     settings, parameters = recorded_run("toy", args.run_name)
-    figures: dict[str, float] = {"iterations": 1, "crop_px": settings.model.resolution}
-    tests: dict[str, dict] = {}
-    for path in args.evaluations:
-        data = json.loads(Path(path).read_text())
-        figures.update({k: float(v) for k, v in data.pop("floors", {}).items()})
-        tests.update(data)
+    floors, tests = read_evaluations(args.evaluations)
+    figures: dict[str, float] = {"iterations": 1, "crop_px": settings.model.resolution, **floors}
     for name, row in tests.items():
         arm, it = ARMS[name]
         figures[f"mcd_{arm}_iter{it}"] = round(row["mcd_cm"], 3)
@@ -419,16 +425,12 @@ def _compare(args: argparse.Namespace) -> dict:
     from flows._settings import recorded_run
 
     settings, _ = recorded_run("toy", args.run_name)
+    _, tests = read_evaluations(args.evaluations)
     figures: dict[str, float] = {}
-    infer = {}
-    for path in args.evaluations:
-        data = json.loads(Path(path).read_text())
-        data.pop("floors", None)
-        for name, row in data.items():
-            figures[f"mcd_{name}"] = round(row["mcd_cm"], 3)
-            figures[f"rot_err_deg_{name}"] = round(row["rot_err_deg"], 1)
-            infer[name] = Path(row["test_infer"])
-    figures.update(map_error_figures(settings, infer))
+    for name, row in tests.items():
+        figures[f"mcd_{name}"] = round(row["mcd_cm"], 3)
+        figures[f"rot_err_deg_{name}"] = round(row["rot_err_deg"], 1)
+    figures.update(map_error_figures(settings, {name: Path(row["test_infer"]) for name, row in tests.items()}))
     record(args.record_as, figures, notes=args.notes, results_dir=args.results_dir)
     print(json.dumps(figures, indent=1), flush=True)
     return figures
