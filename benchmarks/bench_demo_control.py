@@ -106,13 +106,15 @@ def _oracle_dataset(settings, rig, out: Path) -> Path:
 def _rounds(settings, data: Path, out: Path, iterations: int, run_seed: int) -> list[dict]:
     """Φ₀ trained on ``data`` for ``iterations`` warm-started rounds of the run's schedule; test metrics per round."""
     layout = settings.layout
-    dataset = ShardDataset(data, make_feature_fn(settings.features), cache_shards=settings.train.shuffle_shards)
+    dataset = hold_on_device(ShardDataset(data, make_feature_fn(settings.features),
+                                          cache_shards=settings.train.shuffle_shards), None,
+                             settings.train.mirror_probability)  # on the GPU once for every round, when one fits
     previous = layout.stage_dir(0, "train") / "predictor.pt"
     rows = []
     for it in range(1, iterations + 1):
         o = out / f"round-{it:02d}"
-        previous = Trainer(hold_on_device(dataset, None, settings.train.mirror_probability), settings.model,
-                           settings.train, o / "train", init_from=previous, mirror=settings.mirror).train()
+        previous = Trainer(dataset, settings.model, settings.train, o / "train", init_from=previous,
+                           mirror=settings.mirror).train()
         rows.append(_test_metrics(settings, previous, o, it, seed=run_seed + it))  # the loop evaluates i: seed + i
     return rows
 

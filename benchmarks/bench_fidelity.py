@@ -127,10 +127,11 @@ def _reference_rounds(settings, name: str, data_fn, iterations: int, run_seed: i
     def train_and_test(it: int, o: Path) -> dict:
         nonlocal dataset
         if dataset is None:
-            dataset = ShardDataset(data_fn(out), make_feature_fn(settings.features),
-                                   cache_shards=settings.train.shuffle_shards)
-        checkpoint = Trainer(hold_on_device(dataset, None, settings.train.mirror_probability), settings.model,
-                             settings.train, o / "train", init_from=previous, mirror=settings.mirror).train()
+            dataset = hold_on_device(ShardDataset(data_fn(out), make_feature_fn(settings.features),
+                                                  cache_shards=settings.train.shuffle_shards),
+                                     None, settings.train.mirror_probability)  # once for every round
+        checkpoint = Trainer(dataset, settings.model, settings.train, o / "train", init_from=previous,
+                             mirror=settings.mirror).train()
         row = _test_metrics(settings, checkpoint, o, it, seed=run_seed + it)  # the loop evaluates i: seed + i
         print(f"{name} round {it}: test mCD {row['mcd_cm']:.2f} cm", flush=True)
         return row
