@@ -272,8 +272,11 @@ def main(argv: list[str] | None = None) -> dict:
         print(line)
     notes = ("; ".join(verdicts) + ". "
              f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
-             f"predictions iteration {args.iteration} fitted ({settings.train.steps} training steps per model, "
-             f"{r}x{r}); fits with the run's fitting settings"
+             f"predictions iteration {args.iteration} fitted ("
+             + ("Φ₀ loaded from a checkpoint (init_predictor), "
+                if parameters.get("init_predictor") and args.iteration == 1
+                else f"{settings.train.steps} training steps per model, ")
+             + f"{r}x{r}); fits with the run's fitting settings"
              + (f" changed by {fitting_changes}" if fitting_changes else "")
              + " on the predicted maps" + ("" if args.versions == ["predicted"] else
                                             " and with P, Q or both replaced by the ray-cast truth at the same "
