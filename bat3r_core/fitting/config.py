@@ -28,6 +28,11 @@ class FittingConfig:
         huber_delta: δ of the Huber data term, metres (0.1).
         weight_angle, weight_edge, weight_volume, weight_repulsion, weight_scale: λ of Eq. 4, acting on the terms
             normalised as the reference normalises them (mean data term, absolute volume change; ``losses``).
+        weight_silhouette: weight of the silhouette term (not in the paper; 0 = off, the paper's objective): the
+            fitted mesh's projection against the image's mask (:mod:`.silhouette`), on the data term's scale.
+            Whatever the weight, fits report its final value (``loss_silhouette``).
+        silhouette_vertices: fitting-mesh vertices (farthest point sample) whose projections the term checks.
+        silhouette_mask_samples: mask pixels (at most; a seeded sample) that must be covered by a projection.
         warmup: start the angle, edge and volume weights at ``warmup_factor`` times and decay them linearly to
             1x over ``warmup_steps`` steps (the reference warm-up).
         warmup_factor: initial multiplier of the warm-up (10).
@@ -87,6 +92,9 @@ class FittingConfig:
     weight_volume: float = 20.0
     weight_repulsion: float = 1.0
     weight_scale: float = 0.0
+    weight_silhouette: float = 0.0
+    silhouette_vertices: int = 600
+    silhouette_mask_samples: int = 400
     warmup: bool = True
     warmup_factor: float = 10.0
     warmup_steps: int = 25
@@ -112,6 +120,7 @@ class FittingConfig:
 
     def __post_init__(self) -> None:
         positive_ints = ("steps", "rotation_lr_halving_steps", "num_control_points", "repulsion_k",
+                         "silhouette_vertices", "silhouette_mask_samples",
                          "repulsion_refresh_steps", "min_valid_points", "geodesic_landmarks")
         for name in positive_ints:
             v = getattr(self, name)
@@ -130,7 +139,7 @@ class FittingConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FittingConfig.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("weight_angle", "weight_edge", "weight_volume", "weight_repulsion", "weight_scale",
-                     "min_confidence", "repulsion_reference_length", "objective_reference_length",
+                     "weight_silhouette", "min_confidence", "repulsion_reference_length", "objective_reference_length",
                      "weld_relative_tolerance",
                      "densify_max_edge_fraction"):
             if not getattr(self, name) >= 0:

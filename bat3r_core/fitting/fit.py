@@ -6,7 +6,9 @@ vertices to the predicted posed points, then Adam over the excess rotations θ, 
 similarity (axis-angle delta ω on the initial rotation, ``R = R(ω) @ R0``; translation; log scale), with the
 paper's learning rates and schedule (θ's and the bone scales' learning rates halved every 100 steps, θ wrapped to
 |θ_j| ≤ π after every step, as in the reference). The objective is weighted as the reference weights it
-(:mod:`.losses`: mean data term, absolute volume change, proxy terms normalised to the full mesh). Instances are
+(:mod:`.losses`: mean data term, absolute volume change, proxy terms normalised to the full mesh), plus, when
+``config.weight_silhouette > 0``, the mesh's projection against the image's mask (:mod:`.silhouette`; not in the
+paper). Instances are
 independent: every loss is per instance and summed over the batch, and Adam is elementwise, so a batch gives the
 same numbers as fitting its instances one at a time (random choices are seeded by ``config.seed`` and the sample
 id, not the batch position).
@@ -48,11 +50,12 @@ from .geodesics import (DenseGeodesics, LandmarkGeodesics, SubsetGeodesics, load
 from .losses import (MeshRegularisers, RegulariserMesh, angle_term, data_term, find_repulsion_pairs,
                      regulariser_mesh, scale_term, wrap_axis_angle)
 from .sampling import farthest_point_sampling
+from .silhouette import SilhouetteBatch, SilhouetteTarget, mesh_sample, silhouette_target, silhouette_terms
 
 __all__ = ["FittingAsset", "PointCloudInstance", "FitResult", "fit_batch", "densify", "median_edge_length",
            "LOSS_NAMES", "STATUS_TOO_FEW", "STATUS_BAD_INPUT"]
 
-LOSS_NAMES = ("data", "angle", "edge", "volume", "repulsion", "scale", "total")
+LOSS_NAMES = ("data", "angle", "edge", "volume", "repulsion", "scale", "silhouette", "total")
 STATUS_TOO_FEW = "too_few_points"
 STATUS_BAD_INPUT = "bad_input"
 _INIT_IRLS_ITERATIONS = 3
@@ -183,6 +186,8 @@ class PointCloudInstance:
         pixels: (N, 2) pixel coordinates ``(u, v)`` of each point or None (no camera translation then).
         layers: (N,) int layer of each point (0 = front) or None (all treated as layer 0).
         intrinsics: (3, 3) pixels or None. image_size: (width, height) or None.
+        mask: (H, W) bool, the image's mask in the pixel frame of ``pixels`` (``image_size`` when given), or None:
+            the silhouette term (:mod:`.silhouette`) then uses the pixels of the layer-0 points.
     """
 
     sample_id: str
@@ -193,6 +198,7 @@ class PointCloudInstance:
     layers: np.ndarray | None = None
     intrinsics: np.ndarray | None = None
     image_size: tuple[int, int] | None = None
+    mask: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -240,6 +246,7 @@ class _Prepared:
     vertex: np.ndarray  # (n,) assigned fitting-mesh vertex per control point
     target: np.ndarray  # (n, 3) predicted posed points of the control points
     inlier_posed: np.ndarray  # (m, 3) predicted posed points of all inliers
+    silhouette: SilhouetteTarget | None  # None: no silhouette term for this instance
 
 
 def _id_seed(sample_id: str) -> int:
@@ -263,6 +270,12 @@ def _check_instance(inst: PointCloudInstance) -> str:
         return f"pixels must have shape ({n}, 2), got {np.asarray(inst.pixels).shape}"
     if inst.intrinsics is not None and np.asarray(inst.intrinsics).shape != (3, 3):
         return f"intrinsics must have shape (3, 3), got {np.asarray(inst.intrinsics).shape}"
+    if inst.mask is not None:
+        m = np.asarray(inst.mask)
+        expected = None if inst.image_size is None else (int(inst.image_size[1]), int(inst.image_size[0]))
+        if m.ndim != 2 or (expected is not None and m.shape != expected):
+            return (f"mask must have shape {expected or '(H, W)'} (image_size is (width, height)), "
+                    f"got {m.shape}")
     return ""
 
 
@@ -284,7 +297,10 @@ def _prepare(asset: FittingAsset, inst: PointCloudInstance, config: FittingConfi
     pick = farthest_point_sampling(corr.distance[idx], corr.vertex[idx], asset.geodesics,
                                    config.num_control_points, rng)
     ctrl = idx[pick]
-    return _Prepared(index=index, vertex=corr.vertex[ctrl], target=p[ctrl], inlier_posed=p[idx]), "ok", "", info
+    sil = silhouette_target(p, inst.pixels, inst.layers, inl, inst.mask, inst.intrinsics, inst.image_size,
+                            config.silhouette_mask_samples, rng)
+    return (_Prepared(index=index, vertex=corr.vertex[ctrl], target=p[ctrl], inlier_posed=p[idx], silhouette=sil),
+            "ok", "", info)
 
 
 def _robust_similarity(source: np.ndarray, target: np.ndarray, delta: float) -> tuple[float, np.ndarray, np.ndarray]:
@@ -453,8 +469,11 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     radius = config.repulsion_radius * unit
     pair_batch = torch.zeros(0, dtype=torch.long, device=dev)
     pairs = torch.zeros(0, 2, dtype=torch.long, device=dev)
+    sil_batch = SilhouetteBatch.stack([p.silhouette for p in prepared], dt, dev)
+    sil_vertex = torch.as_tensor(mesh_sample(asset.fitting_rig.rest_vertices, config.silhouette_vertices,
+                                             config.seed), device=dev)[None].expand(b, -1)
 
-    def evaluate(step: int):
+    def evaluate(step: int, final: bool = False):
         nonlocal pair_batch, pairs
         th = theta * joint_mask[None, :, None]
         g_unscaled = forward_kinematics(tensors, th)
@@ -485,12 +504,20 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             "repulsion": reg.repulsion(verts_u, pair_batch, pairs, radius, b) / unit ** 4,
             "scale": scale_term(scales, asset.left_right),
         }
+        if config.weight_silhouette > 0 or final:  # reported as a quality column even when not optimised
+            sil = _skin_subset(fit_tensors, m_data, fit_rest_h, sil_vertex)
+            outside, coverage = silhouette_terms(scale[:, None, None] * sil @ rot.transpose(1, 2)
+                                                 + trans[:, None, :], sil_batch, unit, config.huber_delta)
+            terms["silhouette"] = outside + coverage
+        else:
+            terms["silhouette"] = torch.zeros(b, **to)
         warm = 1.0
         if config.warmup and config.warmup_steps > 0:
             warm = 1.0 + (config.warmup_factor - 1.0) * max(0.0, 1.0 - step / config.warmup_steps)
         total = (terms["data"] + warm * (config.weight_angle * terms["angle"] + config.weight_edge * terms["edge"]
                                          + config.weight_volume * terms["volume"])
-                 + config.weight_repulsion * terms["repulsion"] + config.weight_scale * terms["scale"])
+                 + config.weight_repulsion * terms["repulsion"] + config.weight_scale * terms["scale"]
+                 + config.weight_silhouette * terms["silhouette"])
         terms["total"] = total
         return terms, m_unscaled, rot, scale, trans, scales
 
@@ -509,7 +536,9 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             if config.enable_bone_scales:
                 log_bone.clamp_(lo, hi)
     with torch.no_grad():
-        terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps)
+        terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps, final=True)
+        terms["silhouette"] = torch.where(sil_batch.active > 0, terms["silhouette"],
+                                          torch.full_like(terms["silhouette"], float("nan")))
         verts_u = _skin_all(tensors, m_unscaled, rest_h)  # the full file mesh, unit bone scales
         posed = scale[:, None, None] * verts_u @ rot.transpose(1, 2) + trans[:, None, :]
         fit_u = _skin_all(fit_tensors, m_unscaled, fit_rest_h)  # the fitting mesh, unit bone scales

@@ -10,6 +10,8 @@ Points npz (``allow_pickle=False``; B instances, N_b points each, concatenated i
 * ``pixels`` (ΣN, 2) float32: pixel ``(u, v)`` of each point. ``layers`` (ΣN,) int: layer (0 = front).
 * ``intrinsics`` (B, 3, 3) float32: pixels of the image the pixels refer to. ``image_size`` (B, 2) int32 (W, H).
 * ``sample_id`` (B,) unicode strings.
+* ``masks`` (B, H, W) bool, optional: each image's mask (the silhouette term, ``FittingConfig.weight_silhouette``;
+  without it the term uses the layer-0 pixels). Every instance's ``image_size`` must then be (W, H).
 
 Fit shards (:mod:`bat3r_core.shards`): one Parquet row per instance with the columns of :data:`FIT_COLUMNS`, and
 an npz with ``posed_vertices (B, V, 3) float32`` (the unscaled articulated mesh after the global similarity, in
@@ -65,6 +67,14 @@ def write_points_npz(path: str | os.PathLike, instances: list[PointCloudInstance
     }
     if all(with_conf):
         arrays["confidence"] = np.concatenate([np.asarray(i.confidence, np.float32).reshape(-1) for i in instances])
+    with_mask = [i.mask is not None for i in instances]
+    if any(with_mask) and not all(with_mask):
+        raise ValueError("mask must be given for all instances or for none")
+    if all(with_mask):
+        shapes = {np.asarray(i.mask).shape for i in instances}
+        if len(shapes) != 1:
+            raise ValueError(f"masks must all have one shape (H, W), got {sorted(shapes)}")
+        arrays["masks"] = np.stack([np.asarray(i.mask, dtype=bool) for i in instances])
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
@@ -97,6 +107,15 @@ def read_points_npz(path: str | os.PathLike) -> list[PointCloudInstance]:
               "intrinsics": (b, 3, 3), "image_size": (b, 2)}
     if "confidence" in a:
         shapes["confidence"] = (total,)
+    if "masks" in a:
+        if a["masks"].ndim != 3 or a["masks"].dtype != bool:
+            raise ValueError(f"{path}: array 'masks' must be (B, H, W) bool, got {a['masks'].shape} "
+                             f"{a['masks'].dtype}")
+        h, w = a["masks"].shape[1:]
+        shapes["masks"] = (b, h, w)
+        if b and not (a["image_size"] == [w, h]).all():
+            raise ValueError(f"{path}: array 'masks' is {h}x{w} (H x W) but 'image_size' holds other sizes; "
+                             "every image_size must be (W, H) of the masks")
     for k, shape in shapes.items():
         if a[k].shape != shape:
             raise ValueError(f"{path}: array '{k}' must have shape {shape}, got {a[k].shape}")
@@ -109,7 +128,8 @@ def read_points_npz(path: str | os.PathLike) -> list[PointCloudInstance]:
             confidence=a["confidence"][s].astype(np.float64) if "confidence" in a else None,
             pixels=a["pixels"][s].astype(np.float64), layers=a["layers"][s].astype(np.int64),
             intrinsics=a["intrinsics"][i].astype(np.float64),
-            image_size=(int(a["image_size"][i, 0]), int(a["image_size"][i, 1]))))
+            image_size=(int(a["image_size"][i, 0]), int(a["image_size"][i, 1])),
+            mask=a["masks"][i] if "masks" in a else None))
     return out
 
 
@@ -222,7 +242,8 @@ def instances_from_predictions(predictions_dir: str | os.PathLike, index: int, c
     """Point-cloud instances of inference shard ``index`` (``bat3r_core.predictor.infer`` output).
 
     Every row of the shard becomes an instance (rows whose prediction failed get no points, so fitting records
-    them as unfitted). The confidence of a point is the smaller of its canonical and posed confidences.
+    them as unfitted). The confidence of a point is the smaller of its canonical and posed confidences; the mask
+    is the input mask the shard stores (the silhouette term's).
 
     Args:
         camera: the nominal camera of the model's crops (intrinsics and image size; e.g.
@@ -235,6 +256,7 @@ def instances_from_predictions(predictions_dir: str | os.PathLike, index: int, c
 
     table, _ = read_shard(predictions_dir, index, with_arrays=False)
     rows = table.to_pylist()
+    masks = _prediction_masks(predictions_dir, index, len(rows))
     clouds = load_clouds(clouds_path(predictions_dir, index))
     if len(clouds) != len(rows):
         raise ValueError(f"{predictions_dir}: shard {index} has {len(rows)} rows but its clouds hold {len(clouds)} "
@@ -252,8 +274,25 @@ def instances_from_predictions(predictions_dir: str | os.PathLike, index: int, c
             sample_id=row["sample_id"], posed_points=c["posed_points"][:n].astype(np.float64),
             canonical_points=c["canonical_points"][:n].astype(np.float64), confidence=conf,
             pixels=c["pixels"][:n].astype(np.float64), layers=c["layers"][:n].astype(np.int64), intrinsics=k,
-            image_size=size))
+            image_size=size, mask=None if masks is None or masks[i].shape != (size[1], size[0]) else masks[i]))
     return out, rows
+
+
+def _prediction_masks(predictions_dir: str | os.PathLike, index: int, rows: int) -> np.ndarray | None:
+    """The input masks ``(N, H, W) bool`` an inference shard stores beside its maps (None when it has none: a shard
+    without arrays, or one written before the masks were kept)."""
+    from bat3r_core.shards import shard_paths
+
+    npz = shard_paths(predictions_dir, index).npz
+    if not npz.is_file():
+        return None
+    with np.load(npz, allow_pickle=False) as z:
+        if "mask" not in z.files:
+            return None
+        masks = z["mask"]
+    if masks.ndim != 3 or len(masks) != rows:
+        raise ValueError(f"{npz}: array 'mask' must be ({rows}, H, W), got {masks.shape}")
+    return masks.astype(bool)
 
 
 def fit_prediction_shard(asset: FittingAsset, predictions_dir: str | os.PathLike, index: int,
