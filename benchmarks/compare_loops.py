@@ -1,0 +1,128 @@
+"""Loop variants against a recorded fidelity benchmark: does a changed setting make the loop beat its control?
+
+``bench_fidelity.py`` measures one loop against its control and oracle from one Φ₀. A variant of the loop (a
+fitting setting, a filter, an ablation) is a bootstrap run from the same Φ₀ (``--init-predictor``, same preset and
+iterations), so it needs no new control: this script reads each variant run's test metrics (``metrics.parquet``,
+split ``test``) and its pseudo-label check per iteration (``iter-NN/evaluate/pseudo_label_filter.json`` and
+``pseudo_labels.parquet``: the fits' vertex error against the hidden truth, the filter's precision) and puts them
+next to the benchmark's recorded arms (``benchmarks/results/<fidelity>.json``).
+
+    python benchmarks/compare_loops.py --fidelity fidelity_fix --runs bench-fix-sil:silhouette_16 \\
+        [--runs OTHER[:LABEL] ...] --record-as fidelity_loop_silhouette
+
+Figures: ``mcd_<label>_iter<i>``, ``rot_err_deg_<label>_iter<i>``, ``median_fit_vertex_err_cm_<label>_iter<i>``,
+``filter_precision_<label>_iter<i>``, ``filter_base_rate_<label>_iter<i>`` for every variant, the benchmark's
+``mcd_{loop,control,oracle}_iter<i>`` and ``rot_err_deg_…`` copied, and ``gap_to_control_cm_<label>`` (the
+variant's last-iteration test mCD minus the control's: negative = the variant beats the control).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from _results import RESULTS_DIR, record  # noqa: E402
+
+ARMS = ("loop", "control", "oracle")
+
+
+def _run_spec(text: str) -> tuple[str, str]:
+    name, _, label = text.partition(":")
+    label = label or name
+    if not name or not all(c.isalnum() or c in "_-" for c in label):
+        raise argparse.ArgumentTypeError(f"--runs: expected RUN[:LABEL] (label of letters, digits, '_', '-'), "
+                                         f"got {text!r}")
+    return name, label.replace("-", "_")
+
+
+def run_figures(run_dir: Path, label: str) -> dict[str, float]:
+    """Test metrics and pseudo-label checks of one bootstrap run folder, keyed by ``label``."""
+    import pyarrow.parquet as pq
+
+    metrics = run_dir / "metrics.parquet"
+    if not metrics.is_file():
+        raise FileNotFoundError(f"{metrics}: no such file (is {run_dir.name} a finished bootstrap run?)")
+    figures: dict[str, float] = {}
+    for row in pq.read_table(metrics).to_pylist():
+        if row.get("split") != "test" or row.get("mcd_cm") is None:
+            continue
+        i = int(row["iteration"])
+        figures[f"mcd_{label}_iter{i}"] = round(float(row["mcd_cm"]), 3)
+        figures[f"rot_err_deg_{label}_iter{i}"] = round(float(row["rot_err_deg"]), 1)
+    if not figures:
+        raise ValueError(f"{metrics}: no test-split rows with an mCD")
+    for evaluate in sorted(run_dir.glob("iter-*/evaluate")):
+        i = int(evaluate.parent.name.split("-")[1])
+        check = evaluate / "pseudo_label_filter.json"
+        if check.is_file():
+            data = json.loads(check.read_text())
+            for key in ("precision", "base_rate"):
+                if data.get(key) is not None:
+                    figures[f"filter_{key}_{label}_iter{i}"] = round(float(data[key]), 3)
+        labels = evaluate / "pseudo_labels.parquet"
+        if labels.is_file():
+            err = np.array([e for e in pq.read_table(labels, columns=["vertex_err_cm"]).column(0).to_pylist()
+                            if e is not None], dtype=np.float64)
+            if len(err):
+                figures[f"median_fit_vertex_err_cm_{label}_iter{i}"] = round(float(np.median(err)), 2)
+    return figures
+
+
+def main(argv: list[str] | None = None) -> dict[str, float]:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--fidelity", required=True, help="name of the benchmarks/results/<name>.json to compare with")
+    p.add_argument("--runs", type=_run_spec, action="append", required=True, metavar="RUN[:LABEL]",
+                   help="a bootstrap run of the same category started from the benchmark's Φ₀ (repeatable)")
+    p.add_argument("--category", default="toy")
+    p.add_argument("--storage-root", type=Path, default=None,
+                   help="where runs live (default: the data catalog's storage root)")
+    p.add_argument("--record-as", required=True, help="name of the results/<name>.json to write")
+    p.add_argument("--results-dir", type=Path, default=None,
+                   help="write the json there and leave RESULTS.md alone (default: benchmarks/results)")
+    args = p.parse_args(argv)
+    bench_file = (args.results_dir or RESULTS_DIR) / f"{args.fidelity}.json"
+    if not bench_file.is_file() and args.results_dir is not None:
+        bench_file = RESULTS_DIR / f"{args.fidelity}.json"
+    if not bench_file.is_file():
+        raise SystemExit(f"--fidelity: {bench_file} does not exist (a bench_fidelity.py --record-as name)")
+    bench = json.loads(bench_file.read_text())
+    figures = {k: v for k, v in bench.items()
+               if isinstance(v, (int, float)) and k.startswith(tuple(f"{m}_{a}_iter" for m in ("mcd", "rot_err_deg")
+                                                                     for a in ARMS))}
+    last = max((int(k.rsplit("iter", 1)[1]) for k in figures if k.startswith("mcd_control_iter")), default=None)
+    if last is None:
+        raise SystemExit(f"--fidelity: {bench_file} has no control arm (mcd_control_iter<i>)")
+    if args.storage_root is None:
+        from bat3r_core.catalog import load_catalog
+
+        args.storage_root = load_catalog(None, validate_stages=False).storage()
+    lines = []
+    for name, label in args.runs:
+        got = run_figures(Path(args.storage_root) / args.category / name, label)
+        figures.update(got)
+        final = got.get(f"mcd_{label}_iter{last}")
+        if final is not None:
+            gap = round(final - figures[f"mcd_control_iter{last}"], 3)
+            figures[f"gap_to_control_cm_{label}"] = gap
+            lines.append(f"{label} ({name}): iteration {last} test mCD {final:.2f} cm against the control's "
+                         f"{figures[f'mcd_control_iter{last}']:.2f} and the loop's "
+                         f"{figures.get(f'mcd_loop_iter{last}', float('nan')):.2f}: "
+                         + ("beats the control" if gap < 0 else "behind the control"))
+        else:
+            lines.append(f"{label} ({name}): no test mCD at iteration {last} yet")
+    for line in lines:
+        print(line)
+    record(args.record_as, figures, notes=f"loop variants from {args.fidelity}'s Φ₀ against its arms. "
+           + "; ".join(lines), results_dir=args.results_dir)
+    return figures
+
+
+if __name__ == "__main__":
+    main()

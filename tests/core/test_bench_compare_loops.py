@@ -1,0 +1,59 @@
+"""``benchmarks/compare_loops.py``: a loop variant's run figures next to a recorded fidelity benchmark."""
+import json
+import sys
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+import compare_loops as C  # noqa: E402
+
+
+def _fake_run(root: Path, name: str, mcd: list[float]) -> Path:
+    run = root / "toy" / name
+    run.mkdir(parents=True)
+    rows = [{"iteration": i, "split": "test", "mcd_cm": m, "rot_err_deg": 20.0 + i} for i, m in enumerate(mcd)]
+    rows.append({"iteration": 1, "split": "collection", "mcd_cm": None, "rot_err_deg": None})
+    pq.write_table(pa.Table.from_pylist(rows), run / "metrics.parquet")
+    ev = run / "iter-01" / "evaluate"
+    ev.mkdir(parents=True)
+    (ev / "pseudo_label_filter.json").write_text(json.dumps({"precision": 0.25, "base_rate": 0.125, "n": 8}))
+    pq.write_table(pa.Table.from_pylist([{"sample_id": str(k), "vertex_err_cm": e}
+                                         for k, e in enumerate([9.0, 11.0, 13.0, None])]),
+                   ev / "pseudo_labels.parquet")
+    return run
+
+
+def test_variant_figures_sit_next_to_the_benchmark_arms(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "fid.json").write_text(json.dumps({
+        "mcd_loop_iter2": 11.0, "mcd_control_iter1": 10.5, "mcd_control_iter2": 10.4, "mcd_oracle_iter2": 10.3,
+        "rot_err_deg_control_iter2": 25.0, "mcd_phi0_on_collection": 10.8, "machine": "x"}))
+    _fake_run(tmp_path / "runs", "good", [10.9, 10.6, 10.2])
+    _fake_run(tmp_path / "runs", "bad", [10.9, 10.8, 10.7])
+    figures = C.main(["--fidelity", "fid", "--runs", "good:sil", "--runs", "bad", "--storage-root",
+                      str(tmp_path / "runs"), "--record-as", "variants", "--results-dir", str(results)])
+    assert figures["mcd_sil_iter2"] == 10.2 and figures["rot_err_deg_sil_iter1"] == 21.0
+    assert figures["gap_to_control_cm_sil"] == pytest.approx(-0.2) and figures["gap_to_control_cm_bad"] == 0.3
+    assert figures["filter_precision_sil_iter1"] == 0.25 and figures["filter_base_rate_bad_iter1"] == 0.125
+    assert figures["median_fit_vertex_err_cm_sil_iter1"] == 11.0  # the unfitted row (None) is left out
+    assert figures["mcd_control_iter2"] == 10.4 and "mcd_phi0_on_collection" not in figures
+    saved = json.loads((results / "variants.json").read_text())
+    assert "sil (good): iteration 2 test mCD 10.20 cm against the control's 10.40" in saved["notes"]
+    assert "beats the control" in saved["notes"] and "behind the control" in saved["notes"]
+
+
+def test_a_missing_run_or_benchmark_is_named(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    with pytest.raises(SystemExit, match="nope.json does not exist"):
+        C.main(["--fidelity", "nope", "--runs", "x", "--storage-root", str(tmp_path), "--record-as", "v",
+                "--results-dir", str(results)])
+    (results / "fid.json").write_text(json.dumps({"mcd_control_iter1": 10.0}))
+    with pytest.raises(FileNotFoundError, match=r"never-ran/metrics.parquet: no such file"):
+        C.main(["--fidelity", "fid", "--runs", "never-ran", "--storage-root", str(tmp_path), "--record-as", "v",
+                "--results-dir", str(results)])
