@@ -248,7 +248,10 @@ def silhouette_terms(points: torch.Tensor, batch: SilhouetteBatch, unit: float, 
     outside_px = (outside_px - _INSIDE_TOLERANCE_PX).clamp(min=0.0)
     metres = unit * batch.pixels_per_metre[:, None]
     outside = huber(outside_px / metres, delta).mean(-1)
-    cover_px = (torch.cdist(batch.mask_pixels, uv).min(-1).values - _COVER_TOLERANCE_PX).clamp(min=0.0)  # (B, M)
+    with torch.no_grad():  # the nearest projected vertex of each mask pixel; only its distance is differentiated
+        nearest = torch.cdist(batch.mask_pixels, uv).argmin(-1)  # (B, M)
+    gap = batch.mask_pixels - torch.gather(uv, 1, nearest[..., None].expand(-1, -1, 2))
+    cover_px = (torch.sqrt((gap * gap).sum(-1) + 1e-12) - _COVER_TOLERANCE_PX).clamp(min=0.0)  # (B, M)
     valid = batch.mask_valid
     coverage = (huber(cover_px / metres, delta) * valid).sum(-1) / valid.sum(-1).clamp(min=1.0)
     return outside * batch.active, coverage * batch.active
