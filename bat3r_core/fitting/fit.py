@@ -50,7 +50,8 @@ from .geodesics import (DenseGeodesics, LandmarkGeodesics, SubsetGeodesics, load
 from .losses import (MeshRegularisers, RegulariserMesh, angle_term, data_term, find_repulsion_pairs,
                      regulariser_mesh, scale_term, wrap_axis_angle)
 from .sampling import farthest_point_sampling
-from .silhouette import SilhouetteBatch, SilhouetteTarget, mesh_sample, silhouette_target, silhouette_terms
+from .silhouette import (SilhouetteBatch, SilhouetteTarget, mesh_sample, nearest_projections, silhouette_target,
+                         silhouette_terms)
 
 __all__ = ["FittingAsset", "PointCloudInstance", "FitResult", "fit_batch", "densify", "median_edge_length",
            "LOSS_NAMES", "STATUS_TOO_FEW", "STATUS_BAD_INPUT"]
@@ -473,8 +474,10 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     sil_vertex = torch.as_tensor(mesh_sample(asset.fitting_rig.rest_vertices, config.silhouette_vertices,
                                              config.seed), device=dev)[None].expand(b, -1)
 
+    sil_nearest = None
+
     def evaluate(step: int, final: bool = False):
-        nonlocal pair_batch, pairs
+        nonlocal pair_batch, pairs, sil_nearest
         th = theta * joint_mask[None, :, None]
         g_unscaled = forward_kinematics(tensors, th)
         m_unscaled = _skinning_matrices(tensors, g_unscaled)
@@ -506,8 +509,10 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
         }
         if config.weight_silhouette > 0 or final:  # reported as a quality column even when not optimised
             sil = _skin_subset(fit_tensors, m_data, fit_rest_h, sil_vertex)
-            outside, coverage = silhouette_terms(scale[:, None, None] * sil @ rot.transpose(1, 2)
-                                                 + trans[:, None, :], sil_batch, unit, config.huber_delta)
+            sil = scale[:, None, None] * sil @ rot.transpose(1, 2) + trans[:, None, :]
+            if final or step % config.silhouette_refresh_steps == 0:
+                sil_nearest = nearest_projections(sil, sil_batch)
+            outside, coverage = silhouette_terms(sil, sil_batch, unit, config.huber_delta, sil_nearest)
             terms["silhouette"] = outside + coverage
         else:
             terms["silhouette"] = torch.zeros(b, **to)

@@ -7,7 +7,8 @@ exactly which pixels the animal covers. This term compares the fitted mesh's pro
   projection to the nearest mask pixel, read bilinearly from the distance transform of the mask's complement,
   less half a pixel;
 * **coverage**: every mask pixel must be covered; its cost is the distance from its centre to the nearest projected
-  vertex, less half a pixel (a seeded sample of at most ``silhouette_mask_samples`` pixels).
+  vertex, less half a pixel (a seeded sample of at most ``silhouette_mask_samples`` pixels; the nearest vertices
+  are searched every ``silhouette_refresh_steps`` steps).
 
 Both are converted to metres at the object's depth, put through the data term's Huber (δ in the objective's unit,
 ``FittingConfig.objective_reference_length``) and averaged; the term is their sum, weighed against the (mean) data
@@ -32,8 +33,8 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt
 
-__all__ = ["MIN_PROJECTION_POINTS", "SilhouetteBatch", "SilhouetteTarget", "mesh_sample", "silhouette_target",
-           "silhouette_terms"]
+__all__ = ["MIN_PROJECTION_POINTS", "SilhouetteBatch", "SilhouetteTarget", "mesh_sample", "nearest_projections",
+           "silhouette_target", "silhouette_terms"]
 
 MIN_PROJECTION_POINTS = 8
 """Fewer layer-0 points than this (or a degenerate fit) leave an instance without a silhouette term."""
@@ -229,10 +230,20 @@ def _project(points: torch.Tensor, batch: SilhouetteBatch) -> torch.Tensor:
     return a[..., None] * points[..., :2] * ratio[..., None] + batch.principal[:, None, :]
 
 
-def silhouette_terms(points: torch.Tensor, batch: SilhouetteBatch, unit: float, delta: float
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+def nearest_projections(points: torch.Tensor, batch: SilhouetteBatch) -> torch.Tensor:
+    """(B, M) index of the projected point (of ``points`` (B, S, 3)) nearest to each mask pixel (no gradient): the
+    coverage term's assignment, which :func:`silhouette_terms` can reuse for a few steps."""
+    with torch.no_grad():
+        return torch.cdist(batch.mask_pixels, _project(points, batch)).argmin(-1)
+
+
+def silhouette_terms(points: torch.Tensor, batch: SilhouetteBatch, unit: float, delta: float,
+                     nearest: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(outside, coverage), each (B,): the two halves of the silhouette term for posed mesh points (B, S, 3)
-    (metres, the prediction frame), in the objective's unit ``unit`` (metres) with Huber ``delta``."""
+    (metres, the prediction frame), in the objective's unit ``unit`` (metres) with Huber ``delta``.
+
+    nearest: the coverage's pixel → point assignment (:func:`nearest_projections`) or None to compute it now (the
+    exact nearest point; a stale assignment measures each pixel to a point that was nearest a few steps ago)."""
     from .losses import huber
 
     uv = _project(points, batch)
@@ -248,8 +259,9 @@ def silhouette_terms(points: torch.Tensor, batch: SilhouetteBatch, unit: float, 
     outside_px = (outside_px - _INSIDE_TOLERANCE_PX).clamp(min=0.0)
     metres = unit * batch.pixels_per_metre[:, None]
     outside = huber(outside_px / metres, delta).mean(-1)
-    with torch.no_grad():  # the nearest projected vertex of each mask pixel; only its distance is differentiated
-        nearest = torch.cdist(batch.mask_pixels, uv).argmin(-1)  # (B, M)
+    if nearest is None:  # the nearest projected vertex of each mask pixel; only its distance is differentiated
+        with torch.no_grad():
+            nearest = torch.cdist(batch.mask_pixels, uv).argmin(-1)  # (B, M)
     gap = batch.mask_pixels - torch.gather(uv, 1, nearest[..., None].expand(-1, -1, 2))
     cover_px = (torch.sqrt((gap * gap).sum(-1) + 1e-12) - _COVER_TOLERANCE_PX).clamp(min=0.0)  # (B, M)
     valid = batch.mask_valid

@@ -754,11 +754,8 @@ def test_silhouette_projection_is_recovered_from_the_points(toy):
 
 
 def test_silhouette_terms_vanish_on_the_truth_and_grow_off_it(toy):
-    from bat3r_core.fitting.silhouette import (
-        SilhouetteBatch,
-        silhouette_target,
-        silhouette_terms,
-    )
+    from bat3r_core.fitting.silhouette import (SilhouetteBatch, nearest_projections, silhouette_target,
+                                               silhouette_terms)
 
     theta, _ = sample_toy_natural_poses(1, seed=913_392)
     (inst,), (t,) = _instances(toy, theta, TOY_BODY_FRAME, 55_042, 0.0, 0.0)
@@ -779,6 +776,11 @@ def test_silhouette_terms_vanish_on_the_truth_and_grow_off_it(toy):
     assert outside2[0] > 100 * out0 and coverage2[0] > 1000 * cov0
     (outside + coverage).sum().backward()
     assert torch.isfinite(points.grad).all()
+    # a current assignment reproduces the term; a stale one (made for the unshifted mesh) can only measure farther
+    current = silhouette_terms(points2, batch, 1.0, 0.1, nearest_projections(points2, batch))
+    stale = silhouette_terms(points2, batch, 1.0, 0.1, nearest_projections(points.detach(), batch))
+    torch.testing.assert_close(current[1], coverage2)
+    assert stale[1][0] > coverage2[0] and torch.equal(stale[0], outside2)
 
 
 @pytest.fixture(scope="module")
@@ -810,8 +812,8 @@ def test_silhouette_term_pulls_a_misplaced_limb_back_into_the_mask(toy, geo_cach
         config = preset("synthetic", {"weight_silhouette": weight})
         res = fit_batch(FittingAsset.prepare(toy, config, cache_dir=geo_cache), insts, config)
         e = np.stack([np.linalg.norm(res.posed_vertices[i] - truth[i]["vertices"], axis=1) for i in range(4)])
-        err[weight] = (e[:, limb].mean(), e[:, ~limb].mean(), res.losses["silhouette"])
-    # measured: legs 9.8 -> 8.3 cm, the rest of the body 1.6 -> 2.1 cm; silhouette loss 7.7e-4 -> 3.5e-4 in all
+        err[weight] = (e[:, limb].mean(), e[:, ~limb].mean(), res.losses["silhouette"], e.mean())
+    # measured: legs 9.8 -> 8.2 cm, the rest of the body 1.6 -> 2.4 cm; silhouette loss 7.7e-4 -> 3.5e-4 in all
     assert err[4.0][0] < 0.9 * err[0.0][0], err
     assert err[4.0][1] < err[0.0][1] + 0.01, err
     assert (err[4.0][2] < err[0.0][2]).all() and err[4.0][2].sum() < 0.6 * err[0.0][2].sum(), err
@@ -838,6 +840,8 @@ def test_silhouette_term_is_inert_at_zero_weight_and_checks_its_mask(toy, toy_fi
     assert f"mask must have shape ({IMAGE}, {IMAGE})" in res.reason[1]
     with pytest.raises(ConfigError, match="weight_silhouette must be >= 0"):
         preset("synthetic", {"weight_silhouette": -1.0})
+    with pytest.raises(ConfigError, match="silhouette_refresh_steps must be an int >= 1"):
+        preset("synthetic", {"silhouette_refresh_steps": 0})
 
 
 def test_masks_travel_through_the_points_npz_and_the_prediction_shards(toy, tmp_path):
