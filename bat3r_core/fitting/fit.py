@@ -133,6 +133,15 @@ class FittingAsset:
     left_right: torch.Tensor
     device: torch.device
     dtype: torch.dtype
+    _samples: dict = field(default_factory=dict, repr=False)
+
+    def silhouette_vertices(self, count: int, seed: int) -> np.ndarray:
+        """The fitting-mesh vertices the silhouette term projects (:func:`.silhouette.mesh_sample`), computed once
+        per (count, seed)."""
+        key = (int(count), int(seed))
+        if key not in self._samples:
+            self._samples[key] = mesh_sample(self.fitting_rig.rest_vertices, count, seed)
+        return self._samples[key]
 
     @staticmethod
     def prepare(rig: Rig, config: FittingConfig, cache_dir=None, device: str | torch.device = "cpu",
@@ -471,8 +480,8 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     pair_batch = torch.zeros(0, dtype=torch.long, device=dev)
     pairs = torch.zeros(0, 2, dtype=torch.long, device=dev)
     sil_batch = SilhouetteBatch.stack([p.silhouette for p in prepared], dt, dev)
-    sil_vertex = torch.as_tensor(mesh_sample(asset.fitting_rig.rest_vertices, config.silhouette_vertices,
-                                             config.seed), device=dev)[None].expand(b, -1)
+    sil_vertex = torch.as_tensor(asset.silhouette_vertices(config.silhouette_vertices, config.seed),
+                                 device=dev)[None].expand(b, -1)
 
     sil_nearest = None
 

@@ -274,7 +274,7 @@ def instances_from_predictions(predictions_dir: str | os.PathLike, index: int, c
             sample_id=row["sample_id"], posed_points=c["posed_points"][:n].astype(np.float64),
             canonical_points=c["canonical_points"][:n].astype(np.float64), confidence=conf,
             pixels=c["pixels"][:n].astype(np.float64), layers=c["layers"][:n].astype(np.int64), intrinsics=k,
-            image_size=size, mask=None if masks is None or masks[i].shape != (size[1], size[0]) else masks[i]))
+            image_size=size, mask=None if masks is None else masks[i]))  # a wrong size: fitting names it
     return out, rows
 
 
