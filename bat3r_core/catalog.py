@@ -59,6 +59,9 @@ class CollectionSpec:
         pose_sampler: poses of a generated collection: ``random`` (:func:`bat3r_core.poses.sample_random_poses`,
             any rig) or ``toy_natural`` (the toy's gaits, grazing, rearing, …; the toy's joints only). Default:
             ``toy_natural`` for the embedded toy, ``random`` for every other asset.
+        pose_families: pose family → relative frequency for the ``toy_natural`` sampler (families of
+            :data:`bat3r_core.poses.TOY_POSE_FAMILIES`; absent ones are not drawn). Default: all, uniformly. Set
+            the same on ``collection`` and ``test_split``: the test split must come from the collection's sampler.
     """
 
     kind: Literal["folder", "parquet", "generated"]
@@ -67,6 +70,7 @@ class CollectionSpec:
     seed: int = 0
     ground_truth: str | None = None
     pose_sampler: Literal["random", "toy_natural"] | None = None
+    pose_families: dict[str, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -434,6 +438,8 @@ def load_catalog(path: str | os.PathLike | None = None, validate_stages: bool = 
             if cspec is not None and cspec.pose_sampler is not None and cspec.kind != "generated":
                 raise ConfigError(f"categories.{name}.{split}.pose_sampler: only a generated collection samples "
                                   f"poses (kind is {cspec.kind!r}); remove the key or set kind: generated")
+            if cspec is not None and cspec.pose_families is not None:
+                _check_pose_families(cats[name], split, cspec)
     presets = raw["fitting_presets"]
     if not isinstance(presets, dict) or sorted(presets) != ["real", "synthetic"]:
         raise ConfigError(f"fitting_presets: expected exactly the presets 'synthetic' and 'real', got "
@@ -462,6 +468,25 @@ def fitting_preset(name: str, overrides: Mapping[str, Any] | None = None,
                    catalog: str | os.PathLike | None = None):
     """:meth:`Catalog.fitting_preset` of the catalog file ``catalog`` (default: :func:`default_catalog_path`)."""
     return load_catalog(catalog, validate_stages=False).fitting_preset(name, overrides)
+
+
+def _check_pose_families(cat: Category, split: str, spec: CollectionSpec) -> None:
+    """A collection's ``pose_families``: a generated collection of the ``toy_natural`` sampler, known families,
+    non-negative frequencies with a positive sum."""
+    from bat3r_core.poses import TOY_POSE_FAMILIES
+
+    key = f"categories.{cat.name}.{split}.pose_families"
+    sampler = spec.pose_sampler or ("toy_natural" if cat.is_generated else "random")
+    if spec.kind != "generated" or sampler != "toy_natural":
+        raise ConfigError(f"{key}: only a generated collection with pose_sampler 'toy_natural' has pose families "
+                          f"(kind {spec.kind!r}, pose_sampler {sampler!r})")
+    unknown = sorted(set(spec.pose_families) - set(TOY_POSE_FAMILIES))
+    if unknown:
+        raise ConfigError(f"{key}: unknown pose families {unknown}; choose from {list(TOY_POSE_FAMILIES)}")
+    weights = list(spec.pose_families.values())
+    if not weights or any(w < 0 for w in weights) or sum(weights) <= 0:
+        raise ConfigError(f"{key}: expected relative frequencies >= 0 with a positive sum, got "
+                          f"{dict(spec.pose_families)!r}")
 
 
 def _check(key: str, value: Any, tp: type) -> Any:

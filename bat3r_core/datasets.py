@@ -139,7 +139,8 @@ def _yaw(angle: float) -> np.ndarray:
 
 
 def _collection_poses(rig: Rig, n: int, seed: int, pose_sampler: str, families: Sequence[str],
-                      pose_config: RandomPoseConfig) -> tuple[np.ndarray, list[str]]:
+                      pose_config: RandomPoseConfig, family_weights: Sequence[float] | None = None
+                      ) -> tuple[np.ndarray, list[str]]:
     """θ (n, J, 3) and a pose family per pose (``random`` for the random sampler)."""
     if pose_sampler == "toy_natural":
         from bat3r_core.toy import TOY_JOINTS
@@ -148,8 +149,11 @@ def _collection_poses(rig: Rig, n: int, seed: int, pose_sampler: str, families: 
             raise ValueError(f"pose_sampler 'toy_natural' poses the toy's {len(TOY_JOINTS)} joints "
                              f"({', '.join(TOY_JOINTS[:4])}, ...); this rig has {rig.num_joints} joints "
                              f"({', '.join(rig.joint_names[:4])}, ...): use pose_sampler 'random'")
-        theta, fams = sample_toy_natural_poses(n, seed, tuple(families))
+        theta, fams = sample_toy_natural_poses(n, seed, tuple(families), family_weights)
         return theta, list(fams)
+    if family_weights is not None:
+        raise ValueError(f"family_weights: only pose_sampler 'toy_natural' has pose families "
+                         f"(pose_sampler is {pose_sampler!r})")
     if pose_sampler == "random":
         theta, _ = sample_random_poses(rig, n, seed, pose_config)
         return theta, ["random"] * n
@@ -159,10 +163,12 @@ def _collection_poses(rig: Rig, n: int, seed: int, pose_sampler: str, families: 
 def collection_jobs(rig: Rig, n: int, seed: int, body_frame_spec: Mapping, resolution: int = 128,
                     prior: CameraPriorConfig | None = None, pose_sampler: str = "random",
                     families: Sequence[str] = TOY_POSE_FAMILIES, num_textures: int = 1, num_envmaps: int = 0,
-                    prefix: str = "collection", pose_config: RandomPoseConfig = RandomPoseConfig()
+                    prefix: str = "collection", pose_config: RandomPoseConfig = RandomPoseConfig(),
+                    family_weights: Sequence[float] | None = None
                     ) -> tuple[list[RenderJob], list[str], np.ndarray]:
     """Jobs of a synthetic image collection of ``rig``: poses from ``pose_sampler`` (``random`` or
-    ``toy_natural``, which takes ``families``), a random yaw ``U[-pi, pi)`` about +Y as the global rotation, one
+    ``toy_natural``, which takes ``families`` and their relative frequencies ``family_weights``, None:
+    uniform), a random yaw ``U[-pi, pi)`` about +Y as the global rotation, one
     camera per image from ``prior`` (default: the reference Student's t per view type) around the posed mesh in
     the body frame of its posed joints (``body_frame_spec``: ``{"origin", "forward", "horizontal"}`` joint
     names), and a random texture (``[0, num_textures)``) and environment map (``-1``, a procedural sky, when
@@ -173,7 +179,7 @@ def collection_jobs(rig: Rig, n: int, seed: int, body_frame_spec: Mapping, resol
     """
     _check_common(n, resolution, num_textures, num_envmaps)
     prior = prior or CameraPriorConfig()
-    theta, fams = _collection_poses(rig, n, seed, pose_sampler, families, pose_config)
+    theta, fams = _collection_poses(rig, n, seed, pose_sampler, families, pose_config, family_weights)
     rng = np.random.default_rng([seed, 0x70])
     yaws = rng.uniform(-math.pi, math.pi, size=n)
     rot = np.stack([_yaw(a) for a in yaws])

@@ -95,8 +95,8 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
                     families: Sequence[str] = TOY_POSE_FAMILIES, prior: CameraPriorConfig | None = None,
                     force: bool = False, *, asset: str | os.PathLike | None = None,
                     body_frame: Mapping | None = None, textures: Sequence[str] | None = None,
-                    envmaps: Sequence[str] = (), pose_sampler: str | None = None, prefix: str | None = None
-                    ) -> GeneratedCollection:
+                    envmaps: Sequence[str] = (), pose_sampler: str | None = None, prefix: str | None = None,
+                    pose_families: Mapping[str, float] | None = None) -> GeneratedCollection:
     """Render a synthetic image collection (cached: reused when the JSON stamp's parameters match, unless
     ``force``).
 
@@ -106,7 +106,9 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
     needs ``body_frame`` (the category's joint names) and defaults to pose sampler ``random``. ``textures``: image
     files or ``toy:<coat>`` entries, one per texture id; ``()`` (the default for an asset) renders the asset's own
     embedded texture. ``envmaps``: HDR/EXR files (none: a procedural sky). ``prefix``: of the sample ids
-    (default ``toy``, or the asset file's stem). Poses, yaw, cameras and textures: :func:`collection_jobs`.
+    (default ``toy``, or the asset file's stem). ``pose_families``: pose family → relative frequency for the
+    ``toy_natural`` sampler (replaces ``families``; None: ``families``, uniformly), e.g. a collection widened
+    towards the poses furthest from the rest pose. Poses, yaw, cameras and textures: :func:`collection_jobs`.
 
     Layout: ``out_dir/images/<id>.png``, ``out_dir/masks/<id>.png`` (what a user's photo collection looks like);
     the hidden ground truth goes to ``ground_truth_dir`` (default ``<out_dir>_ground_truth`` beside it):
@@ -131,13 +133,21 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
         raise ValueError(f"ground_truth_dir {gt_dir} must be outside the collection folder {out_dir}")
     config = render_config(config)
     prior = prior or CameraPriorConfig()
+    weights = None
+    if pose_families is not None:
+        if not pose_families:
+            raise ValueError("pose_families: expected a non-empty mapping of pose family -> relative frequency")
+        unknown = [f for f in pose_families if f not in TOY_POSE_FAMILIES]
+        if unknown:
+            raise ValueError(f"pose_families: unknown pose families {unknown}; choose from {TOY_POSE_FAMILIES}")
+        families, weights = tuple(pose_families), tuple(float(w) for w in pose_families.values())
     if asset is None:
         sampler = pose_sampler or "toy_natural"
         frame_spec = dict(body_frame or TOY_BODY_FRAME)
         texture_list = tuple(f"toy:{c}" for c in TOY_COATS) if textures is None else tuple(textures)
         prefix = prefix or "toy"
         toy_default = (sampler == "toy_natural" and body_frame is None and textures is None and not envmaps
-                       and prefix == "toy")
+                       and prefix == "toy" and weights is None)
         source = None if toy_default else {"asset": "generated:toy"}
     else:
         asset = Path(asset)
@@ -157,6 +167,11 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
         source.update(body_frame={k: (list(v) if isinstance(v, (list, tuple)) else v) for k, v in frame_spec.items()},
                       textures=list(texture_list), envmaps=[str(e) for e in envmaps], pose_sampler=sampler,
                       prefix=prefix, files=content_hash([f for f in files if f.is_file()]))
+        if weights is not None:
+            source["pose_families"] = dict(zip(families, weights))
+    if weights is not None and sampler != "toy_natural":
+        raise ValueError(f"pose_families: only pose_sampler 'toy_natural' has pose families (pose_sampler is "
+                         f"{sampler!r})")
     params = _params(n, seed, resolution, config, families, prior, source)
     if not force:
         existing = _load_existing(out_dir, gt_dir, params)
@@ -176,7 +191,7 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
         rig = load_rig(glb)
     jobs, fams, verts = collection_jobs(rig, n, seed, frame_spec, resolution, prior, sampler, families,
                                         num_textures=max(len(texture_list), 1), num_envmaps=len(envmaps),
-                                        prefix=prefix)
+                                        prefix=prefix, family_weights=weights)
     assets = SceneAssets(asset=str(glb), textures=texture_list, envmaps=tuple(str(e) for e in envmaps))
     render_jobs(jobs, assets, gt_dir / "render", config, shard_size=max(config.recycle_every, 1), rig=rig)
     by_id = {j.sample_id: k for k, j in enumerate(jobs)}

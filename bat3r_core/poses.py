@@ -121,6 +121,10 @@ def sample_toy_natural_poses(n: int, seed: int, families: tuple[str, ...] = TOY_
     down), rearing (body pitched up, hind legs flexed), lying (legs folded), turning (spine and neck yaw), each
     with random head, neck and tail motion. For hold-out evaluation only; never used to train.
 
+    Args:
+        families: the families drawn from. weights: their relative frequencies (one per family; None: uniform),
+            e.g. to widen a collection towards the poses furthest from the rest pose (catalog ``pose_families``).
+
     Returns:
         excess_rotations (n, 27, 3) float64 and the family name of each pose.
     """
@@ -131,8 +135,14 @@ def sample_toy_natural_poses(n: int, seed: int, families: tuple[str, ...] = TOY_
         raise ValueError(f"unknown pose families {unknown}; choose from {TOY_POSE_FAMILIES}")
     if n <= 0:
         raise ValueError(f"n must be positive, got {n}")
+    p = None
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (len(families),) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+            raise ValueError(f"weights must be {len(families)} non-negative numbers (one per family of "
+                             f"{tuple(families)}) with a positive sum, got {tuple(weights)!r}")
+        p = w / w.sum()
     rng = np.random.default_rng(seed)
-    p = None if weights is None else np.asarray(weights, dtype=np.float64) / np.sum(weights)
     idx = {name: i for i, name in enumerate(TOY_JOINTS)}
     out = np.zeros((n, len(TOY_JOINTS), 3))
     names: list[str] = []

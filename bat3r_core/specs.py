@@ -102,6 +102,8 @@ class GeneratedCollectionSpec:
         asset ... prefix: for any rig but the embedded toy (None: the toy, built in code): the rigged GLB, its body
         frame, its textures (``()``: the asset's own), environment maps, the pose sampler (``random`` /
         ``toy_natural``) and the sample-id prefix.
+        pose_families: pose family → relative frequency of the ``toy_natural`` sampler (None: every family,
+            uniformly).
     """
 
     n: int
@@ -115,10 +117,11 @@ class GeneratedCollectionSpec:
     envmaps: tuple[str, ...] | None = None
     pose_sampler: str | None = None
     prefix: str | None = None
+    pose_families: dict[str, float] | None = None
 
     def collection_options(self) -> dict[str, Any]:
         """The keyword arguments of ``ensure_collection`` this spec sets (those left None take its defaults)."""
-        names = ("asset", "body_frame", "textures", "envmaps", "pose_sampler", "prefix")
+        names = ("asset", "body_frame", "textures", "envmaps", "pose_sampler", "prefix", "pose_families")
         return {k: getattr(self, k) for k in names if getattr(self, k) is not None}
 
 

@@ -19,8 +19,9 @@ the oracle was trained on; an oracle about as far off there as on the test split
 (``map_error_figures``) say how each predictor's test maps are off: depth against lateral error, even errors against
 a few gross ones, images whose depth order is reversed.
 
-Every arm is resumable: the loop and the ablations are flow runs (``runs/toy/<run name>[-<ablation>]``, cached
-stages), the control and oracle rounds keep their checkpoints and metrics under ``runs/toy/<run name>/fidelity/``.
+Every arm is resumable: the loop and the ablations are flow runs (``runs/<category>/<run name>[-<ablation>]``, cached
+stages), the control and oracle rounds keep their checkpoints and metrics under
+``runs/<category>/<run name>/fidelity/``.
 Results: ``benchmarks/results/<record-as>.json`` (test mCD, % > 5 cm and ΔR per arm and iteration; the headroom
 ``oracle / control`` and the fraction of the control → oracle gap the loop recovers), ``RESULTS.md`` and a plot
 ``benchmarks/results/<record-as>.png``.
@@ -241,7 +242,8 @@ def map_error_line(figures: dict[str, float]) -> str | None:
 
 
 def larger_oracles(sizes: list[int], preset: str, run_name: str, overrides: dict, catalog: str | None, phi0: Path,
-                   iterations: int, run_seed: int) -> tuple[dict[str, dict[int, dict]], dict[str, float]]:
+                   iterations: int, run_seed: int, category: str = "toy"
+                   ) -> tuple[dict[str, dict[int, dict]], dict[str, float]]:
     """The oracle again with ``--oracle-sizes`` collections of N images (same Φ₀, rounds and test split): does the
     headroom grow with the number of distinct posed training images? Each size is a run of its own,
     ``<run name>-oracle-n<N>`` (iteration 0 only evaluates Φ₀; its collection is rendered from the catalog's seed),
@@ -253,8 +255,8 @@ def larger_oracles(sizes: list[int], preset: str, run_name: str, overrides: dict
     for n in sizes:
         name = f"{run_name}-oracle-n{n}"
         sized = {**overrides, "run.collection_size": n}
-        start = _run_loop("toy", preset, name, sized, 0, catalog, init_predictor=str(phi0))
-        settings = resolve_run("toy", preset, name, sized, catalog=catalog)
+        start = _run_loop(category, preset, name, sized, 0, catalog, init_predictor=str(phi0))
+        settings = resolve_run(category, preset, name, sized, catalog=catalog)
         rows = _reference_rounds(settings, "oracle", lambda out, s=settings: _oracle_dataset(
             s, load_rig(s.assets.asset), out), iterations, run_seed, start=phi0)
         arms[f"oracle_n{n}"] = {0: start[0], **rows}
@@ -353,7 +355,10 @@ def plot(path: Path, arms: dict[str, dict[int, dict]], floors: dict[str, float] 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--preset", default="bench", help="run preset (default: bench)")
-    p.add_argument("--run-name", default=None, help="run folder under runs/toy (default: the preset name)")
+    p.add_argument("--category", default="toy",
+                   help="a category whose collection and test split are generated with hidden truth (default: toy; "
+                        "toy_wide: the toy in poses further from the rest pose)")
+    p.add_argument("--run-name", default=None, help="run folder under runs/<category> (default: the preset name)")
     p.add_argument("--iterations", type=int, default=None, help="refinement iterations (default: the preset's)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a setting of every arm, e.g. --set train.steps=100 (repeatable)")
@@ -373,14 +378,20 @@ def main(argv: list[str] | None = None) -> dict:
     run_name = args.run_name or args.preset
     overrides = parse_overrides(args.overrides, p)
     catalog = None if args.catalog is None else str(Path(args.catalog).resolve())
-    settings = resolve_run("toy", args.preset, run_name, overrides, catalog=catalog)
+    from bat3r_core.catalog import load_catalog
+
+    spec = load_catalog(catalog).category(args.category)
+    if spec.collection.kind != "generated" or spec.test_split is None or spec.test_split.kind != "generated":
+        p.error(f"--category {args.category}: the benchmark needs a generated collection (the oracle's true labels) "
+                "and a generated test split (hidden ground truth)")
+    settings = resolve_run(args.category, args.preset, run_name, overrides, catalog=catalog)
     iterations = settings.iterations if args.iterations is None else args.iterations
     if iterations < 1:
         p.error("--iterations must be >= 1: the arms differ only after iteration 0")
     if any(n < 1 for n in args.oracle_sizes):
         p.error("--oracle-sizes: expected collection sizes >= 1")
 
-    loop = _run_loop("toy", args.preset, run_name, overrides, iterations, catalog)
+    loop = _run_loop(args.category, args.preset, run_name, overrides, iterations, catalog)
     phi0 = settings.layout.stage_dir(0, "train") / "predictor.pt"
     run_seed = 0  # bootstrap's default seed: the loop evaluates iteration i with seed + i
     control = {0: loop[0], **_reference_rounds(settings, "control", lambda out: settings.layout.stage_dir(0, "render"),
@@ -391,11 +402,11 @@ def main(argv: list[str] | None = None) -> dict:
     arms = {"loop": loop, "control": control, "oracle": oracle}
     ablations = [] if args.ablations is None else (args.ablations or list(ABLATIONS))
     for name in ablations:
-        arms[name] = _run_loop("toy", args.preset, f"{run_name}-{name}", overrides, iterations, catalog,
+        arms[name] = _run_loop(args.category, args.preset, f"{run_name}-{name}", overrides, iterations, catalog,
                                init_predictor=str(phi0), **{name: True})
 
     sized_arms, sized_figures = larger_oracles(args.oracle_sizes, args.preset, run_name, overrides, catalog, phi0,
-                                               iterations, run_seed)
+                                               iterations, run_seed, args.category)
     arms.update(sized_arms)
 
     figures: dict[str, float] = {"iterations": iterations}
@@ -422,7 +433,7 @@ def main(argv: list[str] | None = None) -> dict:
     verdicts = verdict_lines(figures)
     for line in verdicts:
         print(line, flush=True)
-    notes = (f"toy, {args.preset} preset, run {run_name!r} (overrides {overrides}), {os.cpu_count()} CPU cores: from "
+    notes = (f"{args.category}, {args.preset} preset, run {run_name!r} (overrides {overrides}), {os.cpu_count()} CPU cores: from "
              f"one Φ₀, {iterations} iterations of the loop next to {iterations} warm-started rounds of "
              f"{settings.train.steps} steps on the canonical renders (control) and on the collection's images with "
              f"their true labels (oracle)" + ("; ablations from the same Φ₀: " + ", ".join(ablations)

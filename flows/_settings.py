@@ -131,8 +131,8 @@ def _collection(cat, spec, size: int, resolution: int, assets: SceneAssets, body
     """The resolved collection (or test split) of a category; a ``generated`` one also carries what
     ``bat3r_core.generated_collections.make_collection`` renders it from: the asset (None: the embedded toy, built
     in-process), the body frame, the category's textures (``()``: the asset's own embedded texture), environment maps, the
-    pose sampler (``toy_natural`` for the toy, ``random`` otherwise, unless the spec names one) and the sample-id
-    prefix (the category name)."""
+    pose sampler (``toy_natural`` for the toy, ``random`` otherwise, unless the spec names one), its pose-family
+    frequencies when the spec sets them and the sample-id prefix (the category name)."""
     if spec is None:
         return None
     path = cat.resolve(spec.path)
@@ -144,6 +144,8 @@ def _collection(cat, spec, size: int, resolution: int, assets: SceneAssets, body
     out = {"kind": "generated", "path": str(path / tag), "ground_truth": str(gt / tag), "n": n,
            "seed": spec.seed + generated_seed_offset,
            "pose_sampler": spec.pose_sampler or ("toy_natural" if cat.is_generated else "random")}
+    if spec.pose_families is not None:
+        out["pose_families"] = dict(spec.pose_families)
     if not cat.is_generated:
         out.update(asset=assets.asset, body_frame=body_frame, textures=list(assets.textures),
                    envmaps=list(assets.envmaps), prefix=cat.name)

@@ -34,7 +34,7 @@ from tasks.render import render_generated_collection
 __all__ = ["toy_collection", "prepare_split"]
 
 
-_GENERATED_KEYS = ("asset", "body_frame", "textures", "envmaps", "pose_sampler", "prefix")
+_GENERATED_KEYS = ("asset", "body_frame", "textures", "envmaps", "pose_sampler", "prefix", "pose_families")
 
 
 def prepare_split(settings: RunSettings, split: str, spec: dict[str, Any],

@@ -85,7 +85,8 @@ def test_cli_catalog_validate(catalog_copy, capsys):
     assert main(["catalog", "validate", str(catalog_copy)]) == 0
     out = capsys.readouterr().out
     assert "toy      ready" in out
-    assert "horse" in out and "needs rigged asset" in out and "1/4 categories ready" in out
+    assert "toy_wide ready" in out
+    assert "horse" in out and "needs rigged asset" in out and "2/5 categories ready" in out
     _edit(catalog_copy, lambda d: d.update(layers="four"))
     assert main(["catalog", "validate", str(catalog_copy)]) == 2
     assert "layers: expected an integer" in capsys.readouterr().err

@@ -184,3 +184,46 @@ def test_make_collection_needs_an_existing_asset_and_a_body_frame(tmp_path):
     (tmp_path / "a.glb").write_bytes(b"glTF")
     with pytest.raises(ValueError, match=r"body_frame: a generated collection of a.glb needs the category's"):
         make_collection(tmp_path / "c", 2, asset=tmp_path / "a.glb")
+
+
+def test_collection_jobs_draw_the_weighted_pose_families(toy_rig):
+    from bat3r_core.datasets import collection_jobs
+
+    jobs, fams, _ = collection_jobs(toy_rig, 40, 5, TOY_BODY_FRAME, 32, pose_sampler="toy_natural",
+                                    families=("lie", "rear", "stand"), family_weights=(1.0, 1.0, 0.0))
+    assert set(fams) == {"lie", "rear"} and len(jobs) == 40
+    with pytest.raises(ValueError, match=r"family_weights: only pose_sampler 'toy_natural' has pose families"):
+        collection_jobs(toy_rig, 2, 0, TOY_BODY_FRAME, 32, pose_sampler="random", family_weights=(1.0,))
+
+
+def test_make_collection_checks_pose_families_before_rendering(tmp_path):
+    from bat3r_core.generated_collections import make_collection
+
+    with pytest.raises(ValueError, match=r"pose_families: unknown pose families \['dance'\]"):
+        make_collection(tmp_path / "c", 2, pose_families={"dance": 1.0})
+    with pytest.raises(ValueError, match=r"pose_families: only pose_sampler 'toy_natural' has pose families"):
+        make_collection(tmp_path / "c", 2, pose_sampler="random", pose_families={"lie": 1.0})
+    with pytest.raises(ValueError, match=r"pose_families: expected a non-empty mapping"):
+        make_collection(tmp_path / "c", 2, pose_families={})
+    assert not (tmp_path / "c").exists()  # nothing rendered, nothing deleted
+
+
+@pytest.mark.blender
+def test_a_collection_with_pose_families_is_rendered_from_them_and_cached_apart(tmp_path):
+    from bat3r_core.generated_collections import make_collection
+
+    cfg = RenderConfig(resolution=32, samples=1)
+    wide = make_collection(tmp_path / "wide", 4, seed=5, resolution=32, config=cfg,
+                           pose_families={"lie": 1.0, "rear": 1.0})
+    with np.load(wide.ground_truth_dir / "ground_truth.npz", allow_pickle=False) as gt:
+        assert set(gt["pose_family"]) <= {"lie", "rear"} and len(gt["sample_id"]) == 4
+    stamp = json.loads((wide.ground_truth_dir / "collection.json").read_text())
+    assert stamp["params"]["pose_families"] == {"lie": 1.0, "rear": 1.0}
+    assert make_collection(tmp_path / "wide", 4, seed=5, resolution=32, config=cfg,
+                           pose_families={"lie": 1.0, "rear": 1.0}).reused
+    # other frequencies are another collection: rendered again, not the cached one
+    other = make_collection(tmp_path / "wide", 4, seed=5, resolution=32, config=cfg,
+                            pose_families={"lie": 1.0, "rear": 0.0})
+    assert not other.reused
+    with np.load(other.ground_truth_dir / "ground_truth.npz", allow_pickle=False) as gt:
+        assert set(gt["pose_family"]) == {"lie"}

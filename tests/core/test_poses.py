@@ -92,3 +92,48 @@ def test_pose_features_zero_at_rest_and_invariant_to_global_rotation(toy_rig):
     norms = np.linalg.norm(theta, axis=-1)
     np.testing.assert_allclose(f[:, 0], norms.mean(1))
     np.testing.assert_allclose(f[:, 1], (norms ** 2).mean(1))
+
+
+def test_natural_pose_family_weights_set_the_family_frequencies():
+    n = 4000
+    _, fams = sample_toy_natural_poses(n, seed=3, families=("gallop", "lie", "stand"), weights=(2.0, 1.0, 0.0))
+    counts = {f: fams.count(f) for f in set(fams)}
+    assert set(counts) == {"gallop", "lie"}  # a family of weight 0 is never drawn
+    # binomial: 2/3 of the draws gallop (sd ~ 0.0075)
+    assert abs(counts["gallop"] / n - 2.0 / 3.0) < 0.03
+    a, _ = sample_toy_natural_poses(50, seed=3, families=("gallop", "lie"), weights=(2.0, 1.0))
+    b, _ = sample_toy_natural_poses(50, seed=3, families=("gallop", "lie"), weights=(4.0, 2.0))
+    np.testing.assert_array_equal(a, b)  # seeded; only the relative frequencies matter
+    for bad in ((1.0,), (1.0, -1.0, 1.0), (0.0, 0.0, 0.0), (1.0, float("nan"), 1.0)):
+        with pytest.raises(ValueError, match=r"weights must be 3 non-negative numbers"):
+            sample_toy_natural_poses(3, seed=0, families=("gallop", "lie", "stand"), weights=bad)
+
+
+def test_the_catalogs_widened_toy_poses_are_further_from_the_rest_pose(toy_rig):
+    """``toy_wide`` in the shipped catalog: its pose families take the toy further from its rest pose than the
+    uniform sampler does (mean vertex distance after the best rigid alignment of the rest mesh)."""
+    from pathlib import Path
+
+    import yaml
+
+    from bat3r_core.metrics import kabsch
+
+    catalog = yaml.safe_load((Path(__file__).resolve().parents[2] / "data_catalog.yaml").read_text())
+    spec = catalog["categories"]["toy_wide"]
+    families = spec["collection"]["pose_families"]
+    assert spec["test_split"]["pose_families"] == families  # the test split comes from the collection's sampler
+    rt = toy_rig.tensors(torch.float64)
+    rest = toy_rig.rest_vertices
+
+    def distance(theta):
+        verts = skin(rt, torch.as_tensor(theta)).vertices.numpy()
+        out = []
+        for v in verts:
+            aligned = kabsch(rest, v).apply(rest)
+            out.append(np.linalg.norm(aligned - v, axis=1).mean())
+        return float(np.mean(out))
+
+    default, _ = sample_toy_natural_poses(120, seed=4)
+    wide, fams = sample_toy_natural_poses(120, seed=4, families=tuple(families), weights=tuple(families.values()))
+    assert "stand" not in fams
+    assert distance(wide) > 1.15 * distance(default)

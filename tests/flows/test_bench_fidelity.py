@@ -288,3 +288,11 @@ def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_ru
                                            notes="tiny", results_dir=out))
     assert side["mcd_oracle"] == round(rows["oracle"]["mcd_cm"], 3) and "lateral_bias_y_cm_control" in side
     assert json.loads((out / "gpu_rounds_cmp.json").read_text())["notes"] == "tiny"
+
+
+def test_a_category_without_hidden_truth_is_refused(catalog, capsys):
+    with pytest.raises(SystemExit):
+        B.main(["--category", "horse", "--run-name", "nohorse"])
+    err = capsys.readouterr().err
+    assert "--category horse: the benchmark needs a generated collection" in err
+    assert not (catalog / "runs" / "horse" / "nohorse").exists()

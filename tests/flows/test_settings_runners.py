@@ -234,3 +234,37 @@ def test_the_local_runner_asks_running_tasks_to_stop_only_when_its_flow_is_stopp
                 assert not stop_requested()
     finally:
         clear_stop_request()
+
+
+def test_pose_families_reach_the_generated_collection_and_bad_ones_are_named(tmp_path, monkeypatch):
+    import yaml
+
+    from bat3r_core.specs import GeneratedCollectionSpec
+    from flows._settings import resolve_run
+
+    monkeypatch.setenv("BAT3R_STORAGE_ROOT", str(tmp_path / "runs"))
+    s = resolve_run("toy_wide", "tiny", "r1")  # the shipped catalog's widened toy
+    families = {"gallop": 2.0, "rear": 2.0, "lie": 2.0, "trot": 1.0, "graze": 1.0}
+    assert s.collection["pose_families"] == families == s.test_split["pose_families"]
+    assert "pose_families" not in resolve_run("toy", "tiny", "r1").collection  # the toy keeps its sampler
+    spec = GeneratedCollectionSpec(n=4, seed=1, resolution=32, render=s.render, pose_families=families)
+    assert spec.collection_options()["pose_families"] == families
+
+    data = yaml.safe_load((ROOT / "data_catalog.yaml").read_text())
+    path = tmp_path / "catalog.yaml"
+    bad = {"photos": ({"kind": "folder", "path": "photos", "pose_families": {"lie": 1}},
+                      r"categories\.toy_wide\.collection\.pose_families: only a generated collection with "
+                      r"pose_sampler 'toy_natural' has pose families \(kind 'folder'"),
+           "random": ({"kind": "generated", "path": "g", "pose_sampler": "random", "pose_families": {"lie": 1}},
+                      r"pose_sampler 'random'\)"),
+           "unknown": ({"kind": "generated", "path": "g", "pose_families": {"dance": 1}},
+                       r"categories\.toy_wide\.collection\.pose_families: unknown pose families \['dance'\]"),
+           "negative": ({"kind": "generated", "path": "g", "pose_families": {"lie": -1, "rear": 2}},
+                        r"expected relative frequencies >= 0 with a positive sum"),
+           "text": ({"kind": "generated", "path": "g", "pose_families": {"lie": "often"}},
+                    r"categories\.toy_wide\.collection\.pose_families\.lie: expected a number")}
+    for name, (collection, message) in bad.items():
+        data["categories"]["toy_wide"]["collection"] = collection
+        path.write_text(yaml.safe_dump(data))
+        with pytest.raises(ConfigError, match=message):
+            load_catalog(path)
