@@ -1,9 +1,10 @@
 """Which predicted map spoils the fits? Pseudo-label quality with ground-truth maps substituted.
 
-For a finished toy run (``runs/toy/<run name>``; the overrides its manifest records apply), takes the predictions
-on the collection that iteration ``--iteration`` fitted (by default 1: Φ₀'s predictions) and, for every predicted
-point, the true canonical point Q* and posed point P* of the same pixel and layer, ray-cast from the hidden
-ground truth (pose, camera, and the collection's crop of the image) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
+For a finished run of a generated collection (``runs/<category>/<run name>``, default category ``toy``; the
+overrides its manifest records apply), takes the predictions on the collection that iteration ``--iteration``
+fitted (by default 1: Φ₀'s predictions) and, for every predicted point, the true canonical point Q* and posed
+point P* of the same pixel and layer, ray-cast from the hidden ground truth (pose, camera, and the collection's
+crop of the image) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
 
 * the per-image RMS error of the predicted Q and of the predicted P (centred, per camera axis; z is depth);
 * the pose error of fits (``bat3r_core.evaluation_truth.pseudo_label_errors``: mean vertex error after rigid alignment)
@@ -189,6 +190,7 @@ def changed_fitting(config, changes: dict):
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--category", default="toy", help="the run's category (default: toy; e.g. toy_wide)")
     p.add_argument("--run-name", default="demo")
     p.add_argument("--iteration", type=int, default=1, help="the iteration whose infer stage is analysed (>= 1)")
     p.add_argument("--record-as", default="fit_oracle", help="name of the results/<name>.json to write")
@@ -207,7 +209,7 @@ def main(argv: list[str] | None = None) -> dict:
         p.error(f"--error-scales: expected values >= 0, got {args.error_scales}")
     if args.iteration < 1:
         raise SystemExit(f"--iteration: expected >= 1 (iteration 0 fits nothing), got {args.iteration}")
-    settings, parameters = recorded_run("toy", args.run_name)
+    settings, parameters = recorded_run(args.category, args.run_name)
     fitting_changes = parse_overrides(args.fitting, p)
     try:
         fitting = changed_fitting(settings.fitting, fitting_changes)
@@ -274,7 +276,7 @@ def main(argv: list[str] | None = None) -> dict:
     for line in verdicts:
         print(line)
     notes = ("; ".join(verdicts) + ". "
-             f"toy, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
+             f"{args.category}, {settings.preset} preset, run {args.run_name!r} (overrides {parameters['overrides']}), the "
              f"predictions iteration {args.iteration} fitted ("
              + ("Φ₀ loaded from a checkpoint (init_predictor), "
                 if parameters.get("init_predictor") and args.iteration == 1
