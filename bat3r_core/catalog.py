@@ -473,20 +473,17 @@ def fitting_preset(name: str, overrides: Mapping[str, Any] | None = None,
 def _check_pose_families(cat: Category, split: str, spec: CollectionSpec) -> None:
     """A collection's ``pose_families``: a generated collection of the ``toy_natural`` sampler, known families,
     non-negative frequencies with a positive sum."""
-    from bat3r_core.poses import TOY_POSE_FAMILIES
+    from bat3r_core.poses import pose_family_weights
 
     key = f"categories.{cat.name}.{split}.pose_families"
     sampler = spec.pose_sampler or ("toy_natural" if cat.is_generated else "random")
     if spec.kind != "generated" or sampler != "toy_natural":
         raise ConfigError(f"{key}: only a generated collection with pose_sampler 'toy_natural' has pose families "
                           f"(kind {spec.kind!r}, pose_sampler {sampler!r})")
-    unknown = sorted(set(spec.pose_families) - set(TOY_POSE_FAMILIES))
-    if unknown:
-        raise ConfigError(f"{key}: unknown pose families {unknown}; choose from {list(TOY_POSE_FAMILIES)}")
-    weights = list(spec.pose_families.values())
-    if not weights or any(w < 0 for w in weights) or sum(weights) <= 0:
-        raise ConfigError(f"{key}: expected relative frequencies >= 0 with a positive sum, got "
-                          f"{dict(spec.pose_families)!r}")
+    try:
+        pose_family_weights(spec.pose_families)
+    except ValueError as e:
+        raise ConfigError(f"{key}: {e}") from None
 
 
 def _check(key: str, value: Any, tp: type) -> Any:

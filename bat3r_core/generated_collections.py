@@ -14,7 +14,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from bat3r_core.poses import TOY_POSE_FAMILIES
+from bat3r_core.poses import TOY_POSE_FAMILIES, pose_family_weights
 from bat3r_core.render.config import RenderConfig, SceneAssets, render_config
 from bat3r_core.viewpoints import CameraPriorConfig
 
@@ -135,12 +135,10 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
     prior = prior or CameraPriorConfig()
     weights = None
     if pose_families is not None:
-        if not pose_families:
-            raise ValueError("pose_families: expected a non-empty mapping of pose family -> relative frequency")
-        unknown = [f for f in pose_families if f not in TOY_POSE_FAMILIES]
-        if unknown:
-            raise ValueError(f"pose_families: unknown pose families {unknown}; choose from {TOY_POSE_FAMILIES}")
-        families, weights = tuple(pose_families), tuple(float(w) for w in pose_families.values())
+        try:
+            families, weights = pose_family_weights(pose_families)
+        except ValueError as e:
+            raise ValueError(f"pose_families: {e}") from None
     if asset is None:
         sampler = pose_sampler or "toy_natural"
         frame_spec = dict(body_frame or TOY_BODY_FRAME)
@@ -177,21 +175,18 @@ def make_collection(out_dir: str | os.PathLike, n: int, seed: int = 0, resolutio
         existing = _load_existing(out_dir, gt_dir, params)
         if existing is not None:
             return existing
+    # the jobs first: a rig, body frame or sampler they cannot be made for leaves a cached collection in place
+    rig = build_toy_rig() if asset is None else load_rig(asset)
+    jobs, fams, verts = collection_jobs(rig, n, seed, frame_spec, resolution, prior, sampler, families,
+                                        num_textures=max(len(texture_list), 1), num_envmaps=len(envmaps),
+                                        prefix=prefix, family_weights=weights)
     for d in (out_dir / "images", out_dir / "masks", gt_dir):
         if d.exists():
             shutil.rmtree(d)
     (out_dir / "images").mkdir(parents=True)
     (out_dir / "masks").mkdir(parents=True)
     gt_dir.mkdir(parents=True)
-    if asset is None:
-        rig = build_toy_rig()
-        glb = save_rig_glb(rig, gt_dir / "toy.glb")
-    else:
-        glb = Path(shutil.copy2(asset, gt_dir / asset.name))
-        rig = load_rig(glb)
-    jobs, fams, verts = collection_jobs(rig, n, seed, frame_spec, resolution, prior, sampler, families,
-                                        num_textures=max(len(texture_list), 1), num_envmaps=len(envmaps),
-                                        prefix=prefix, family_weights=weights)
+    glb = save_rig_glb(rig, gt_dir / "toy.glb") if asset is None else Path(shutil.copy2(asset, gt_dir / asset.name))
     assets = SceneAssets(asset=str(glb), textures=texture_list, envmaps=tuple(str(e) for e in envmaps))
     render_jobs(jobs, assets, gt_dir / "render", config, shard_size=max(config.recycle_every, 1), rig=rig)
     by_id = {j.sample_id: k for k, j in enumerate(jobs)}

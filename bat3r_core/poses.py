@@ -11,6 +11,7 @@ Rotations are excess rotations θ (axis-angle, radians) in each joint's rest fra
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,7 @@ from scipy.special import ndtr, ndtri
 from .rig import Rig
 
 __all__ = ["RandomPoseConfig", "sample_random_poses", "sample_toy_natural_poses", "TOY_POSE_FAMILIES",
-           "pose_features"]
+           "pose_family_weights", "pose_features"]
 
 
 @dataclass(frozen=True)
@@ -111,6 +112,23 @@ def _leg_swing(phase: float, amp: float) -> tuple[float, float]:
     s = np.sin(2 * np.pi * phase)
     lift = max(0.0, np.sin(2 * np.pi * phase + 0.6))  # the leg folds while it swings forward
     return -amp * s, amp * 1.4 * lift
+
+
+def pose_family_weights(pose_families: Mapping[str, float]) -> tuple[tuple[str, ...], tuple[float, ...]]:
+    """A ``pose_families`` mapping (toy pose family → relative frequency, e.g. the catalog's) as the ``families``
+    and ``weights`` of :func:`sample_toy_natural_poses`. ValueError for an empty mapping, an unknown family, or
+    frequencies that are not finite numbers >= 0 with a positive sum."""
+    if not isinstance(pose_families, Mapping) or not pose_families:
+        raise ValueError("expected a non-empty mapping of pose family -> relative frequency, got "
+                         f"{pose_families!r}")
+    unknown = sorted(set(pose_families) - set(TOY_POSE_FAMILIES))
+    if unknown:
+        raise ValueError(f"unknown pose families {unknown}; choose from {list(TOY_POSE_FAMILIES)}")
+    weights = tuple(pose_families.values())
+    if (not all(isinstance(w, (int, float)) and not isinstance(w, bool) and np.isfinite(w) and w >= 0
+                for w in weights) or sum(weights) <= 0):
+        raise ValueError(f"expected relative frequencies >= 0 with a positive sum, got {dict(pose_families)!r}")
+    return tuple(pose_families), tuple(float(w) for w in weights)
 
 
 def sample_toy_natural_poses(n: int, seed: int, families: tuple[str, ...] = TOY_POSE_FAMILIES,

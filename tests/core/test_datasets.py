@@ -227,3 +227,17 @@ def test_a_collection_with_pose_families_is_rendered_from_them_and_cached_apart(
     assert not other.reused
     with np.load(other.ground_truth_dir / "ground_truth.npz", allow_pickle=False) as gt:
         assert set(gt["pose_family"]) == {"lie"}
+
+
+@pytest.mark.blender
+def test_a_collection_that_cannot_be_posed_leaves_the_cached_one_in_place(tmp_path):
+    from bat3r_core.generated_collections import make_collection
+
+    cfg = RenderConfig(resolution=32, samples=1)
+    first = make_collection(tmp_path / "c", 2, seed=1, resolution=32, config=cfg)
+    before = sorted(p.name for p in first.images_dir.iterdir())
+    with pytest.raises(ValueError, match=r"n must be an int >= 1, got 0"):
+        make_collection(tmp_path / "c", 0, seed=1, resolution=32, config=cfg)
+    assert sorted(p.name for p in first.images_dir.iterdir()) == before and len(before) == 2
+    assert (first.ground_truth_dir / "ground_truth.npz").is_file()
+    assert make_collection(tmp_path / "c", 2, seed=1, resolution=32, config=cfg).reused

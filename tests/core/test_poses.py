@@ -137,3 +137,15 @@ def test_the_catalogs_widened_toy_poses_are_further_from_the_rest_pose(toy_rig):
     wide, fams = sample_toy_natural_poses(120, seed=4, families=tuple(families), weights=tuple(families.values()))
     assert "stand" not in fams
     assert distance(wide) > 1.15 * distance(default)
+
+
+def test_pose_family_weights_reads_a_catalog_mapping():
+    from bat3r_core.poses import pose_family_weights
+
+    assert pose_family_weights({"lie": 2, "rear": 1.5}) == (("lie", "rear"), (2.0, 1.5))
+    for bad, message in (({}, "expected a non-empty mapping"), ({"dance": 1}, r"unknown pose families \['dance'\]"),
+                         ({"lie": -1, "rear": 2}, "expected relative frequencies >= 0"),
+                         ({"lie": 0}, "with a positive sum"), ({"lie": True}, "expected relative frequencies"),
+                         ({"lie": float("inf")}, "expected relative frequencies")):
+        with pytest.raises(ValueError, match=message):
+            pose_family_weights(bad)
