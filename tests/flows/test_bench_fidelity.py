@@ -149,7 +149,7 @@ def test_the_fit_oracle_runs_on_the_bench_run(bench_run, catalog, tmp_path):
         assert figures[f"{key}_errors_x0"] == figures[f"{key}_true_P_and_Q"]
     written = json.loads((tmp_path / "fit_oracle.json").read_text())
     assert written["median_fit_vertex_err_cm_errors_x0.5"] == figures["median_fit_vertex_err_cm_errors_x0.5"]
-    assert "errors scaled by 0, 0.5" in written["notes"] and written["notes"].startswith("toy, bench preset")
+    assert "errors scaled by 0, 0.5" in written["notes"] and "toy, bench preset, run 'bt'" in written["notes"]
     with pytest.raises(SystemExit):
         FO.main(["--run-name", "bt", "--error-scales", "-1", "--results-dir", str(tmp_path)])
 
