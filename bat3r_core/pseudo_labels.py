@@ -18,6 +18,8 @@ distance; thresholds not published). Here:
   reads.
 * :func:`filter_precision` — precision / recall of the kept set against the truth: a fit is *good* when its
   vertex error (``bat3r_core.evaluation_truth.pseudo_label_errors``) is below the rest pose's (:func:`rest_pose_errors`).
+* :func:`score_ranking` — per quality column, its rank correlation with the fit-minus-rest error and the precision
+  of keeping its best quantile: which ``score`` to choose, measured on a collection with a hidden truth.
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ from bat3r_core import shards
 
 __all__ = ["QUALITY_COLUMNS", "HIGHER_IS_BETTER", "FILTER_COLUMNS", "STATUS_NOT_FITTED", "STATUS_QUANTILE",
            "PseudoLabelFilterConfig", "quality_rows", "filter_fits", "write_filter_shards", "read_kept",
-           "filter_counts", "rest_pose_errors", "filter_precision"]
+           "filter_counts", "rest_pose_errors", "filter_precision", "score_ranking"]
 
 QUALITY_COLUMNS = ("residual_chamfer_cm", "inlier_ratio", "mean_confidence", "loss_data", "loss_total",
                    "camera_reprojection_px", "camera_inlier_ratio", "canonical_chamfer_cm", "pose_joint_dist_cm")
@@ -293,3 +295,37 @@ def filter_precision(error_rows: Sequence[Mapping[str, Any]], rest_rows: Sequenc
     return {"n": n, "n_good": len(good), "n_kept": len(kept_ids), "n_kept_good": len(good & kept_ids),
             "precision": ratio(len(good & kept_ids), len(kept_ids)), "recall": ratio(len(good & kept_ids), len(good)),
             "base_rate": ratio(len(good), n)}
+
+
+def score_ranking(error_rows: Sequence[Mapping[str, Any]], rest_rows: Sequence[Mapping[str, Any]],
+                  quality: Sequence[Mapping[str, Any]], columns: Sequence[str] = QUALITY_COLUMNS,
+                  quantiles: Sequence[float] = (0.5, 0.25, 0.1)) -> dict[str, dict[str, Any]]:
+    """How well each quality column would rank the fits, against the truth: which ``score`` a filter should use.
+
+    error_rows, rest_rows: as in :func:`filter_precision`; quality: rows with ``sample_id`` and the columns (the
+    filter shard rows hold them all). Only fits with an error, a rest error and a quality row take part.
+    Per column: ``rho``, the Spearman rank correlation of the column with the fit's vertex error minus its rest
+    pose's (> 0: larger values mean worse fits; NaN values rank last), and ``precision@q`` for each quantile, the
+    share of fits beating the rest pose among the best ``ceil(q * n)`` by the column (direction from
+    :data:`HIGHER_IS_BETTER`; NaN last, as the filter ranks). Also ``base_rate`` (share of all fits beating the
+    rest pose) and ``n`` under the key ``"all"``."""
+    from scipy.stats import spearmanr
+
+    rest = {r["sample_id"]: float(r["vertex_err_cm"]) for r in rest_rows}
+    by_id = {r["sample_id"]: r for r in quality}
+    rows = [r for r in error_rows if r["sample_id"] in rest and r["sample_id"] in by_id]
+    delta = np.array([float(r["vertex_err_cm"]) - rest[r["sample_id"]] for r in rows])
+    good = delta < 0
+    out: dict[str, dict[str, Any]] = {"all": {"n": len(rows), "base_rate": float(good.mean()) if rows else None}}
+    for column in columns:
+        values = np.array([_float(by_id[r["sample_id"]].get(column)) for r in rows], dtype=np.float64)
+        higher = column in HIGHER_IS_BETTER
+        order = _better_first(values, higher)
+        worst = (np.nanmin(values) if higher else np.nanmax(values)) if np.isfinite(values).any() else 0.0
+        entry: dict[str, Any] = {"rho": float(spearmanr(np.where(np.isfinite(values), values, worst), delta)[0])
+                                 if len(rows) > 2 and np.ptp(delta) > 0 else float("nan")}
+        for q in quantiles:
+            k = max(1, math.ceil(q * len(rows))) if rows else 0
+            entry[f"precision@{q:g}"] = float(good[order[:k]].mean()) if k else None
+        out[column] = entry
+    return out

@@ -180,6 +180,31 @@ def filter_figures(layout, iteration: int) -> dict[str, float]:
                                                                "n_kept_good") if data.get(k) is not None}
 
 
+def ranking_figures(layout, iteration: int, gt: dict, rig) -> dict[str, float]:
+    """Which quality column ranks the run's own fits of ``iteration`` (``pseudo_labels.score_ranking`` of its fit,
+    filter and ``pseudo_labels.parquet`` files): ``rank_rho_<column>`` and ``rank_precision_q<q>_<column>`` per
+    column, ``rank_base_rate``; empty when the run has no filter shards or no pseudo-label errors."""
+    import pyarrow.parquet as pq
+
+    from bat3r_core import pseudo_labels
+
+    filter_dir, errors = layout.stage_dir(iteration, "filter"), layout.stage_dir(iteration, "evaluate") / \
+        evaluation_truth.PSEUDO_LABEL_FILE
+    if not shards.list_shards(filter_dir) or not errors.is_file():
+        return {}
+    fits = [r for r in shards.read_table(layout.stage_dir(iteration, "fit")).to_pylist()
+            if r["status"] == shards.STATUS_OK and r["sample_id"] in gt]
+    ranking = pseudo_labels.score_ranking(pq.read_table(errors).to_pylist(),
+                                          pseudo_labels.rest_pose_errors(fits, gt, rig),
+                                          shards.read_table(filter_dir).to_pylist())
+    figures = {"rank_base_rate": round(ranking.pop("all")["base_rate"] or float("nan"), 3)}
+    for column, entry in ranking.items():
+        figures[f"rank_rho_{column}"] = round(entry["rho"], 2)
+        figures.update({f"rank_precision_q{k.split('@')[1]}_{column}": round(v, 2)
+                        for k, v in entry.items() if k.startswith("precision@") and v is not None})
+    return figures
+
+
 def changed_fitting(config, changes: dict):
     """``config`` (a ``FittingConfig``) with each ``field: value`` of ``changes`` set, values converted to the field's
     type; a ``ConfigError`` naming the key for an unknown field or a value of the wrong type."""
@@ -260,6 +285,14 @@ def main(argv: list[str] | None = None) -> dict:
         f"{k[len('median_'):]} {v}" for k, v in figures.items()
         if k.startswith("median_") and not k.startswith(("median_fit_", "median_rest_"))))
     figures.update(filter_figures(layout, args.iteration))
+    ranked = ranking_figures(layout, args.iteration, gt, rig)
+    figures.update(ranked)
+    if ranked:
+        best = max((k for k in ranked if k.startswith("rank_precision_q0.25_")), key=lambda k: ranked[k])
+        print(f"the run's fits ranked by each quality column: best quarter by {best[len('rank_precision_q0.25_'):]} "
+              f"beats the rest pose for {ranked[best]:.0%} (base rate {ranked['rank_base_rate']:.0%}); Spearman rho "
+              "with fit-minus-rest error: " + ", ".join(f"{k[len('rank_rho_'):]} {v:+.2f}" for k, v in ranked.items()
+                                                      if k.startswith("rank_rho_")))
     verdicts = []
     if "median_fit_vertex_err_cm_predicted" in figures:
         verdicts.append(f"median fit {figures['median_fit_vertex_err_cm_predicted']:.2f} cm vs rest pose "

@@ -174,3 +174,34 @@ def test_the_runs_filter_scored_on_refits(scene, toy_rig):
     got = B.refit_filter_precision(rows, [inst, inst], {"s0": gt, "s1": gt}, toy_rig, config)
     assert (got["n"], got["n_good"], got["n_kept"], got["n_kept_good"]) == (2, 1, 1, 1)
     assert got["precision"] == 1.0 and got["base_rate"] == 0.5
+
+
+def test_ranking_figures_from_a_runs_fit_filter_and_error_files(tmp_path, scene, toy_rig):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from bat3r_core import evaluation_truth, shards
+    from bat3r_core.pseudo_labels import QUALITY_COLUMNS
+    from bat3r_core.runs import RunLayout
+
+    _, gt = scene
+    theta = np.asarray(gt["excess_rotations"])
+    wrong = theta.copy()
+    wrong[toy_rig.joint_index("forearm.L")] += [1.5, 0.0, 0.0]
+    layout = RunLayout(tmp_path, "toy", "r")
+    assert B.ranking_figures(layout, 1, {"s0": gt, "s1": gt}, toy_rig) == {}  # no filter shards: nothing to rank
+    fits = [{"sample_id": "s0", "status": "ok", "reason": "", "excess_rotations": theta.ravel().tolist()},
+            {"sample_id": "s1", "status": "ok", "reason": "", "excess_rotations": (3 * wrong).ravel().tolist()}]
+    shards.write_shard(layout.stage_dir(1, "fit"), 0, fits)
+    # the good fit (s0) has the smaller residual but the smaller inlier ratio: residual ranks right, inliers wrong
+    quality = [{"sample_id": s, "status": "ok", "reason": "", **{c: 1.0 for c in QUALITY_COLUMNS},
+                "residual_chamfer_cm": r, "inlier_ratio": i} for s, r, i in (("s0", 1.0, 0.2), ("s1", 5.0, 0.9))]
+    shards.write_shard(layout.stage_dir(1, "filter"), 0, quality)
+    layout.stage_dir(1, "evaluate").mkdir(parents=True)
+    errors = evaluation_truth.pseudo_label_errors(fits, {"s0": gt, "s1": gt}, toy_rig)
+    pq.write_table(pa.Table.from_pylist(errors), layout.stage_dir(1, "evaluate") / evaluation_truth.PSEUDO_LABEL_FILE)
+    figures = B.ranking_figures(layout, 1, {"s0": gt, "s1": gt}, toy_rig)
+    assert figures["rank_base_rate"] == 0.5  # the true pose beats the rest pose, the wild one does not
+    assert figures["rank_precision_q0.5_residual_chamfer_cm"] == 1.0
+    assert figures["rank_precision_q0.5_inlier_ratio"] == 0.0
+    assert np.isnan(figures["rank_rho_residual_chamfer_cm"])  # two fits: too few for a rank correlation

@@ -180,3 +180,32 @@ def test_catalog_filter_config_per_preset_and_override(tmp_path):
     settings = resolve_run("toy", "tiny", "r", {"pseudo_label_filter.keep_quantile": 0.5}, catalog=catalog)
     assert settings.pseudo_label_filter.keep_quantile == 0.5 and settings.pseudo_label_filter.min_kept == 4
     assert settings.to_mapping()["pseudo_label_filter"]["keep_quantile"] == 0.5
+
+
+def test_score_ranking_on_crafted_fits_against_hand_counts():
+    # six fits; fit minus rest error: a -3, b -2, c +1, d -1, e +4, f +2 (good: a, b, d: base rate 0.5)
+    fit_err = {"a": 7.0, "b": 8.0, "c": 11.0, "d": 9.0, "e": 14.0, "f": 12.0}
+    errors = [{"sample_id": s, "vertex_err_cm": v} for s, v in fit_err.items()]
+    rest = [{"sample_id": s, "vertex_err_cm": 10.0} for s in fit_err]
+    # residual ranks the fits exactly by their error; inlier_ratio (higher is better) reverses it; c has no
+    # confidence (NaN ranks last)
+    residual = {"a": 1.0, "b": 2.0, "d": 3.0, "c": 4.0, "f": 5.0, "e": 6.0}
+    inlier = {"a": 0.1, "b": 0.2, "d": 0.3, "c": 0.4, "f": 0.5, "e": 0.6}
+    confidence = {"a": 0.9, "b": 0.1, "c": float("nan"), "d": 0.8, "e": 0.7, "f": 0.2}
+    quality = [_q(s, residual[s], inlier=inlier[s], mean_confidence=confidence[s]) for s in fit_err]
+    quality.append(_q("z", 0.5))  # a quality row without truth takes no part
+    out = PL.score_ranking(errors, rest, quality, columns=("residual_chamfer_cm", "inlier_ratio",
+                                                            "mean_confidence"), quantiles=(0.5, 0.25))
+    assert out["all"] == {"n": 6, "base_rate": 0.5}
+    assert out["residual_chamfer_cm"]["rho"] == pytest.approx(1.0)
+    assert out["residual_chamfer_cm"]["precision@0.5"] == 1.0  # a, b, d
+    assert out["residual_chamfer_cm"]["precision@0.25"] == 1.0  # ceil(1.5) = 2: a, b
+    assert out["inlier_ratio"]["rho"] == pytest.approx(1.0)  # larger inlier ratio, worse fit here
+    assert out["inlier_ratio"]["precision@0.5"] == 0.0  # e, f, c
+    # confidence best first: a (0.9, good), d (0.8, good), e (0.7, bad); c's NaN counts as the worst value
+    assert out["mean_confidence"]["precision@0.5"] == pytest.approx(2 / 3)
+    assert out["mean_confidence"]["precision@0.25"] == 1.0
+    from scipy.stats import spearmanr
+    filled = [0.9, 0.1, 0.1, 0.8, 0.7, 0.2]  # c's NaN → the column's worst (smallest, higher is better)
+    expected = spearmanr(filled, [-3, -2, 1, -1, 4, 2])[0]
+    assert out["mean_confidence"]["rho"] == pytest.approx(expected)
