@@ -14,7 +14,8 @@ Reads like the data flow of ``DESIGN.md``::
     every iteration:
     render jobs + rig       ── render ─────────▶ iter-ii/render    training shards (RGB, mask, P/Q/occupancy)
     training shards         ── features ───────▶ iter-ii/features  feature shards
-    training shards         ── train ──────────▶ iter-ii/train     Φ_i (predictor.pt)
+    training shards         ── train ──────────▶ iter-ii/train     Φ_i (predictor.pt); with train.canonical_replay
+                                                                  also on a share of iter-00/render per epoch
     test split              ── infer(Φ_i) ─────▶ iter-ii/test_infer
     test predictions + GT   ── evaluate ───────▶ iter-ii/evaluate, metrics.parquet, report.html, artifacts
 
@@ -126,18 +127,31 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
                            max_failed_fraction=max_failed_fraction)
     cfg = stage_specs(settings, seed)
     it = _Iteration(settings, 0, _data_drops(data_drops))
+    replay = settings.train.canonical_replay > 0
     if init_predictor is not None:
-        get_run_logger().info("iteration 0: Φ_0 from %s (no canonical renders or training)", init_predictor)
+        get_run_logger().info("iteration 0: Φ_0 from %s (no training%s)", init_predictor,
+                              "; canonical renders for train.canonical_replay" if replay else ", no canonical renders")
         it.notes.append(f"Φ_0 is {init_predictor} (init_predictor): not trained in this run.")
+        if replay:  # the canonical renders the refinement iterations replay (the same plan and seed as Φ_0's run)
+            _render_canonical(it, cfg)
+            it.run(FEATURES, [{"input_dir": it.dir(RENDER), "index": r["index"], "out_dir": it.dir(FEATURES),
+                               "config": cfg.features} for r in it.stages[-1].records],
+                   max_failed_fraction=settings.max_failed_fraction)
         _evaluate_test(it, cfg, str(init_predictor))
         return _finish_iteration(it, str(init_predictor))
+    _render_canonical(it, cfg)
+    return _train_and_evaluate(it, cfg, None)
+
+
+def _render_canonical(it: _Iteration, cfg: StageSpecs) -> StageResult:
+    """Iteration 0's render jobs around the rest-pose mesh, rendered: the canonical training shards."""
+    settings = it.settings
     plan = it.run(PLAN, [{"asset": settings.assets.asset, "out_dir": it.dir(PLAN), "config": cfg.plan}],
                   max_failed_fraction=0.0, needs=training_need(settings.train.batch_size))
     job_files = plan.records[0]["files"]
     for stage in (PLAN, RENDER, FEATURES):  # shards of an earlier, larger plan of this run
         prune_shards(it.dir(stage), range(len(job_files)))
-    _render(it, cfg, list(enumerate(job_files)))
-    return _train_and_evaluate(it, cfg, None)
+    return _render(it, cfg, list(enumerate(job_files)))
 
 
 def _evaluate_collection(it: _Iteration, cfg: StageSpecs, predictor: str) -> None:
@@ -267,8 +281,21 @@ def _train_and_evaluate(it: _Iteration, cfg: StageSpecs, previous: str | None) -
     it.run(FEATURES, [{"input_dir": it.dir(RENDER), "index": r["index"], "out_dir": it.dir(FEATURES),
                        "config": cfg.features} for r in training.records], max_failed_fraction=mff)
     init_from = previous if previous is not None and settings.train.warm_start else None
+    replay = {}
+    if it.iteration > 0 and settings.train.canonical_replay > 0:  # iteration 0's canonical renders, mixed in
+        canonical = _Iteration(settings, 0)
+        replay = {"replay_dir": canonical.dir(RENDER), "replay_features_dir": canonical.dir(FEATURES)}
+        if not shards.list_shards(replay["replay_dir"]):
+            raise FileNotFoundError(f"train.canonical_replay = {settings.train.canonical_replay}: no canonical "
+                                    f"renders in {replay['replay_dir']} (iteration 0 of this run renders them; "
+                                    "rerun the run from iteration 0)")
     train = it.run(TRAIN, [{"shards_dir": it.dir(RENDER), "features_dir": it.dir(FEATURES), "out_dir": it.dir(TRAIN),
-                            "config": cfg.train_from(init_from)}], max_failed_fraction=0.0)
+                            "config": cfg.train_from(init_from), **replay}], max_failed_fraction=0.0)
+    if replay:
+        n = train.records[0].get("n_replayed", 0) if train.records else 0
+        it.notes.append(f"canonical replay: {n} of iteration 0's canonical renders per epoch next to "
+                        f"{train.records[0]['n_samples'] - n if train.records else 0} pseudo-label renders "
+                        f"(train.canonical_replay = {settings.train.canonical_replay}).")
     predictor = train.records[0]["predictor"]
     _evaluate_test(it, cfg, predictor)
     return _finish_iteration(it, predictor)

@@ -7,13 +7,13 @@ from typing import Any, Callable, Mapping
 
 from bat3r_core import shards
 from bat3r_core.predictor import train as training
-from bat3r_core.predictor.data import ShardDataset, hold_on_device
+from bat3r_core.predictor.data import MixedDataset, ShardDataset, hold_on_device
 from bat3r_core.predictor.features import make_feature_fn
 from bat3r_core.specs import TrainSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
 from tasks._devices import gpu_slot
 
-__all__ = ["train_model", "training_inputs"]
+__all__ = ["train_model", "training_inputs", "training_set"]
 
 
 def training_inputs(shards_dir: str) -> list[Path]:
@@ -63,18 +63,41 @@ def dashboard_progress(out_dir: str) -> Callable[[dict[str, Any]], None]:
 
 def _inputs(p: Mapping[str, Any]) -> list[Path]:
     init = as_spec(TrainSpec, p["config"], "train config").init_from
-    features = p.get("features_dir")
-    return training_inputs(p["shards_dir"]) + (training_inputs(features) if features else []) + \
-        ([Path(init)] if init else [])
+    folders = [p["shards_dir"], p.get("features_dir"), p.get("replay_dir"), p.get("replay_features_dir")]
+    return [f for d in folders if d for f in training_inputs(d)] + ([Path(init)] if init else [])
+
+
+def _dataset(shards_dir: str, features_dir: str | None, spec: TrainSpec) -> ShardDataset:
+    source = {"features_dir": features_dir} if features_dir else {"feature_fn": make_feature_fn(spec.features)}
+    return ShardDataset(shards_dir, cache_shards=spec.train.shuffle_shards, **source)
+
+
+def training_set(shards_dir: str, spec: TrainSpec, device: str | None, features_dir: str | None = None,
+                 replay_dir: str | None = None, replay_features_dir: str | None = None):
+    """What ``train_model`` trains on: the shards of ``shards_dir`` (held on ``device`` when they fit,
+    ``data.hold_on_device``), mixed with ``round(train.canonical_replay × len)`` samples per epoch of the shards of
+    ``replay_dir`` (iteration 0's canonical renders; at most all of them) when both are given
+    (``data.MixedDataset``)."""
+    train_cfg = spec.train
+    data = hold_on_device(_dataset(shards_dir, features_dir, spec), device, train_cfg.mirror_probability)
+    if replay_dir is None or train_cfg.canonical_replay <= 0:
+        return data
+    replay = hold_on_device(_dataset(replay_dir, replay_features_dir, spec), device, train_cfg.mirror_probability)
+    take = min(len(replay), max(1, round(train_cfg.canonical_replay * len(data))))
+    return MixedDataset([data, replay], [len(data), take])
 
 
 @stage_task("train", inputs=_inputs, output=lambda p: Path(p["out_dir"]), spec=TrainSpec, retries=1, gpu=True)
 def train_model(shards_dir: str, out_dir: str, config: TrainSpec | Mapping[str, Any],
-                features_dir: str | None = None) -> dict:
+                features_dir: str | None = None, replay_dir: str | None = None,
+                replay_features_dir: str | None = None) -> dict:
     """Train the predictor on the training shards of ``shards_dir`` into ``out_dir`` (``predictor.pt``,
     ``checkpoint.pt``, ``train_log.jsonl``). A killed task resumes from ``checkpoint.pt`` on its retry or rerun.
     features_dir: the features stage's shards of ``shards_dir`` (part of the cache key), streamed as the model's
     input so no sample's features are computed again; None computes them per batch (the spec's ``features``).
+
+    replay_dir, replay_features_dir: iteration 0's canonical renders and their features, mixed in when the spec's
+    ``train.canonical_replay`` > 0 (:func:`training_set`; part of the cache key).
 
     config: a ``bat3r_core.specs.TrainSpec`` (or its mapping); its ``init_from``, for a warm start, is the
     ``predictor.pt`` whose weights initialise the model (part of the cache key).
@@ -83,15 +106,14 @@ def train_model(shards_dir: str, out_dir: str, config: TrainSpec | Mapping[str, 
     final_loss`` (the last logged total loss).
     """
     spec = as_spec(TrainSpec, config, "train config")
+    folders = {"features_dir": features_dir, "replay_dir": replay_dir, "replay_features_dir": replay_features_dir}
     _discard_stale_checkpoint(Path(out_dir), shards.content_hash(_inputs({"shards_dir": shards_dir, "config": spec,
-                                                                           "features_dir": features_dir})))
+                                                                           **folders})))
     model_cfg, train_cfg = spec.model, spec.train
-    source = {"features_dir": features_dir} if features_dir else {"feature_fn": make_feature_fn(spec.features)}
-    dataset = ShardDataset(shards_dir, cache_shards=train_cfg.shuffle_shards, **source)
     with gpu_slot() as device:
         device = None if device is None else f"cuda:{device}"
-        held = hold_on_device(dataset, device, train_cfg.mirror_probability)  # the GPU's copy, when one fits
-        path = training.Trainer(held, model_cfg, train_cfg, out_dir, device=device,
+        dataset = training_set(shards_dir, spec, device, **folders)  # the GPU's copy, when one fits
+        path = training.Trainer(dataset, model_cfg, train_cfg, out_dir, device=device,
                                 init_from=spec.init_from, mirror=spec.mirror,
                                 progress=dashboard_progress(out_dir)).train()
     log = Path(out_dir) / "train_log.jsonl"
@@ -100,4 +122,5 @@ def train_model(shards_dir: str, out_dir: str, config: TrainSpec | Mapping[str, 
     return {"stage": "train", "predictor": str(path), "files": [str(path)],
             "content_hash": shards.content_hash([path]), "steps": train_cfg.steps,
             "final_loss": last.get("total"), "n_samples": len(dataset),
+            "n_replayed": dataset.takes[1] if isinstance(dataset, MixedDataset) else 0,
             "shards_without_features": list(getattr(dataset, "shards_without_features", []))}

@@ -97,11 +97,18 @@ class TrainConfig:
     random initialisation. The training data of earlier iterations is still discarded; only the weights carry
     over. The paper does not say how Φ_i is initialised; small runs (the ``demo`` preset) need the carried-over
     training to end up better than Φ_0 (see the README, "The two commands")."""
+    canonical_replay: float = 0.0
+    """Refinement iterations: also train on iteration 0's canonical (rest-pose) renders, this many per pseudo-label
+    render and epoch (at most all of them; each epoch draws its share afresh, ``data.MixedDataset``). 0 (the
+    paper): each iteration trains on its own renders alone. A regulariser against wrong fits: the canonical renders
+    keep teaching the rest pose's correct labels while the fitted poses teach the collection's poses."""
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "grad_accum", "checkpoint_every", "shuffle_shards", "log_every"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"TrainConfig.{name}: expected >= 1, got {getattr(self, name)}")
+        if not (self.canonical_replay >= 0):
+            raise ConfigError(f"TrainConfig.canonical_replay: expected >= 0, got {self.canonical_replay}")
         if self.warmup_steps < 0:
             raise ConfigError(f"TrainConfig.warmup_steps: expected >= 0, got {self.warmup_steps}")
         if not (self.lr > 0):

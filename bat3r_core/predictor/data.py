@@ -268,3 +268,75 @@ def hold_on_device(dataset: ShardDataset, device: str | torch.device | None, mir
     if DeviceDataset.nbytes(dataset) > max_fraction * free:
         return dataset
     return DeviceDataset(dataset, device)
+
+
+class MixedDataset:
+    """Several training sets as one: every epoch takes ``takes[k]`` samples of part k, the first ones of that part's
+    own :meth:`~ShardDataset.epoch_order` for the epoch (a part with more samples than it gives contributes a
+    different subset each epoch), interleaved at random. What a refinement iteration with ``train.canonical_replay``
+    trains on: its pseudo-label renders (all of them) and a share of iteration 0's canonical renders.
+
+    Global sample indices number the parts one after the other (part k's local index plus the sizes of the parts
+    before it); ``len`` is the number of samples per epoch (``sum(takes)``), which is what the trainer's epoch
+    bookkeeping and its resume check need. The parts are :class:`ShardDataset` or :class:`DeviceDataset` of the same
+    crop size, layers and feature channels.
+
+    Args:
+        parts: the training sets.
+        takes: samples per epoch of each part, 1 ≤ take ≤ len(part).
+    """
+
+    def __init__(self, parts, takes) -> None:
+        self.parts, self.takes = list(parts), [int(t) for t in takes]
+        if not self.parts or len(self.parts) != len(self.takes):
+            raise ValueError(f"MixedDataset: expected one take per part, got {len(self.parts)} parts and "
+                             f"{len(self.takes)} takes")
+        shape = lambda d: (d.height, d.width, d.layers, d.channels)  # noqa: E731
+        for k, (part, take) in enumerate(zip(self.parts, self.takes)):
+            if shape(part) != shape(self.parts[0]):
+                raise ValueError(f"MixedDataset: part {k} ({_name(part)}) has (height, width, layers, channels) "
+                                 f"{shape(part)}, part 0 ({_name(self.parts[0])}) {shape(self.parts[0])}: "
+                                 "training sets of one run must share the crop size, layers and features")
+            if not 1 <= take <= len(part):
+                raise ValueError(f"MixedDataset: take of part {k} ({_name(part)}): expected 1 ≤ take ≤ {len(part)}, "
+                                 f"got {take}")
+        self.height, self.width, self.layers, self.channels = shape(self.parts[0])
+        self._offsets = np.cumsum([0] + [len(p) for p in self.parts])
+        self.shards_without_features = [s for p in self.parts for s in getattr(p, "shards_without_features", [])]
+
+    def __len__(self) -> int:
+        return int(sum(self.takes))
+
+    def epoch_order(self, seed: int, epoch: int, shuffle_shards: int = 4) -> np.ndarray:
+        """Deterministic order of epoch ``epoch``: each part's first ``take`` samples of its own epoch order (part k
+        ordered with seed ``seed + k``), placed at random slots; depends on (seed, epoch) and the parts' sizes only."""
+        rng = np.random.default_rng([int(seed), int(epoch), len(self.parts)])
+        slots = rng.permutation(np.repeat(np.arange(len(self.parts)), self.takes))
+        order = np.empty(len(slots), dtype=np.int64)
+        for k, (part, take) in enumerate(zip(self.parts, self.takes)):
+            order[slots == k] = part.epoch_order(int(seed) + k, epoch, shuffle_shards)[:take] + self._offsets[k]
+        return order
+
+    def get_batch(self, indices) -> TrainingBatch:
+        """Samples ``indices`` (global) as one batch, in the order given."""
+        idx = np.asarray(indices, dtype=np.int64)
+        if idx.size and (idx.min() < 0 or idx.max() >= self._offsets[-1]):
+            raise IndexError(f"indices: expected 0 <= index < {self._offsets[-1]}, got {idx.min()}..{idx.max()}")
+        part_of = np.searchsorted(self._offsets, idx, side="right") - 1
+        batches, positions = [], []
+        for k in np.unique(part_of):
+            sel = np.flatnonzero(part_of == k)
+            batches.append(self.parts[k].get_batch(idx[sel] - self._offsets[k]))
+            positions.append(sel)
+        back = torch.as_tensor(np.argsort(np.concatenate(positions)), device=batches[0].features.device)
+
+        def cat(tensors: list[torch.Tensor]) -> torch.Tensor:
+            return torch.cat(tensors)[back]
+
+        return TrainingBatch(cat([b.features for b in batches]), cat([b.mask for b in batches]),
+                             TrainingTargets(*(cat([b.targets[i] for b in batches]) for i in range(3))))
+
+
+def _name(dataset) -> str:
+    source = getattr(dataset, "source", dataset)
+    return str(getattr(source, "folder", type(dataset).__name__))

@@ -1,4 +1,5 @@
 """Predictor network shapes, shard dataset, overfitting, exact resume and 2-process DDP (gloo, CPU)."""
+import dataclasses
 import socket
 
 import numpy as np
@@ -9,7 +10,7 @@ import torch.multiprocessing as mp
 from bat3r_core.config_utils import ConfigError
 from bat3r_core.pointmaps import decode_float16
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
-from bat3r_core.predictor.data import ShardDataset, rgb_features
+from bat3r_core.predictor.data import MixedDataset, ShardDataset, rgb_features
 from bat3r_core.predictor.infer import load_predictor
 from bat3r_core.predictor.network import DualPointMapNet
 from bat3r_core.predictor.synthetic import synthetic_samples, write_synthetic_shards
@@ -154,6 +155,82 @@ def test_epoch_order_is_a_seeded_permutation(shards16):
     # shuffle_shards=1: each shard's samples stay contiguous
     shard_of = np.array([ds.locate(int(i))[0] for i in a])
     assert (np.diff(shard_of) != 0).sum() == 2
+
+
+# ------------------------------------------------------------------------------------- canonical replay
+@pytest.fixture(scope="module")
+def replay16(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("replay16")
+    write_synthetic_shards(folder, 10, 16, shard_size=4, seed=2)  # another set: shards of 4, 4, 2
+    return folder
+
+
+def test_mixed_dataset_takes_its_share_of_each_part_per_epoch(shards16, replay16):
+    main, replay = ShardDataset(shards16), ShardDataset(replay16)
+    mixed = MixedDataset([main, replay], [8, 3])
+    assert len(mixed) == 11
+    seen = []
+    for epoch in range(4):
+        order = mixed.epoch_order(5, epoch, shuffle_shards=1)
+        assert np.array_equal(order, mixed.epoch_order(5, epoch, shuffle_shards=1))
+        main_part, replay_part = order[order < 8], order[order >= 8] - 8
+        assert sorted(main_part.tolist()) == list(range(8))  # every pseudo-label sample once per epoch
+        assert len(replay_part) == 3 and len(set(replay_part.tolist())) == 3
+        assert np.array_equal(replay_part, replay.epoch_order(6, epoch, shuffle_shards=1)[:3])
+        seen.append(set(replay_part.tolist()))
+    assert len(set.union(*seen)) > 3  # a different share of the canonical set each epoch
+    # a batch across both parts holds exactly the samples asked for, in the order asked
+    order = mixed.epoch_order(5, 0, shuffle_shards=1)
+    batch = mixed.get_batch(order[:6])
+    for row, index in enumerate(order[:6]):
+        part, local = (main, index) if index < 8 else (replay, index - 8)
+        single = part.get_batch([int(local)])
+        assert torch.equal(batch.features[row], single.features[0])
+        assert all(torch.equal(t[row], s[0]) for t, s in zip(batch.targets, single.targets))
+
+
+def test_mixed_dataset_rejects_mismatched_parts(shards16, replay16, tmp_path):
+    write_synthetic_shards(tmp_path / "s8", 4, 8, shard_size=4, seed=3)
+    with pytest.raises(ValueError, match=r"part 1 \(.*s8\) has \(height, width, layers, channels\) \(8, 8, 4, 3\)"):
+        MixedDataset([ShardDataset(shards16), ShardDataset(tmp_path / "s8")], [8, 4])
+    with pytest.raises(ValueError, match=r"take of part 1 \(.*replay16.*\): expected 1 ≤ take ≤ 10, got 11"):
+        MixedDataset([ShardDataset(shards16), ShardDataset(replay16)], [8, 11])
+
+
+def test_training_set_mixes_canonical_replay_by_ratio(shards16, replay16):
+    from bat3r_core.predictor.features.config import FeatureConfig
+    from bat3r_core.specs import TrainSpec
+    from tasks.train import training_set
+
+    def spec(ratio):
+        return TrainSpec(model=SMALL_MODEL, train=dataclasses.replace(SMALL_TRAIN, canonical_replay=ratio),
+                         features=FeatureConfig())
+
+    plain = training_set(str(shards16), spec(0.0), "cpu", replay_dir=str(replay16))
+    assert isinstance(plain, ShardDataset) and len(plain) == 8  # 0: the paper's recipe, no replay
+    half = training_set(str(shards16), spec(0.5), "cpu", replay_dir=str(replay16))
+    assert isinstance(half, MixedDataset) and half.takes == [8, 4]
+    assert training_set(str(shards16), spec(3.0), "cpu", replay_dir=str(replay16)).takes == [8, 10]  # all of it
+    with pytest.raises(ConfigError, match="canonical_replay: expected >= 0, got -1"):
+        dataclasses.replace(SMALL_TRAIN, canonical_replay=-1.0)
+
+
+def test_training_on_a_mixed_set_resumes_exactly(shards16, replay16, tmp_path):
+    def mixed():
+        return MixedDataset([ShardDataset(shards16, cache_shards=1), ShardDataset(replay16, cache_shards=1)], [8, 4])
+
+    full = Trainer(mixed(), SMALL_MODEL, SMALL_TRAIN, tmp_path / "full")
+    full.train()
+    run = Trainer(mixed(), SMALL_MODEL, SMALL_TRAIN, tmp_path / "killed")
+    run.train(until_step=5)
+    del run
+    resumed = Trainer(mixed(), SMALL_MODEL, SMALL_TRAIN, tmp_path / "killed")
+    resumed.train()
+    reference, got = _state(full), _state(resumed)
+    assert all(torch.equal(got[k], reference[k]) for k in reference)
+    alone = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "alone")
+    alone.train()
+    assert not all(torch.equal(_state(alone)[k], reference[k]) for k in reference)  # the replay changed training
 
 
 # ---------------------------------------------------------------------------------------------- training

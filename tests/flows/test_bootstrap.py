@@ -270,6 +270,29 @@ def test_raw_image_baseline_trains_on_the_photos_with_fitted_labels(first_run, c
     assert arrays["occupancy"][ok].any(axis=(1, 2, 3)).all()
 
 
+def test_canonical_replay_trains_on_iteration_zero_renders_too(first_run, catalog):
+    """train.canonical_replay from another run's Φ₀: iteration 0 renders the canonical set that Φ₀ was trained on
+    (same plan and seed: the same samples, the same labels) without training, and iteration 1 trains on its
+    pseudo-label renders plus round(ratio × their number) canonical renders per epoch."""
+    from flows.bootstrap import bootstrap
+
+    base = RunLayout(catalog / "runs", "toy", "t1")
+    result = bootstrap(category="toy", preset="tiny", iterations=1, run_name="replay",
+                       overrides={**TINY, "train.canonical_replay": 0.5},
+                       init_predictor=str(base.stage_dir(0, "train") / "predictor.pt"))
+    layout = RunLayout(catalog / "runs", "toy", "replay")
+    assert not layout.stage_dir(0, "train").exists()
+    mine, theirs = shards.read_table(layout.stage_dir(0, "render")), shards.read_table(base.stage_dir(0, "render"))
+    assert mine.column("sample_id").to_pylist() == theirs.column("sample_id").to_pylist()
+    np.testing.assert_allclose(shards.read_shard(layout.stage_dir(0, "render"), 0)[1]["Q"].astype(np.float32),
+                               shards.read_shard(base.stage_dir(0, "render"), 0)[1]["Q"].astype(np.float32), atol=2e-3)
+    n_canonical = int(shards.ok_mask(mine).sum())
+    n_pseudo = int(shards.ok_mask(shards.read_table(layout.stage_dir(1, "render"))).sum())
+    train = result["iterations"][1]["stages"]["train"][0]
+    assert train["n_replayed"] == min(n_canonical, max(1, round(0.5 * n_pseudo))) > 0
+    assert train["n_samples"] == n_pseudo + train["n_replayed"]
+
+
 def test_baselines_that_do_not_iterate_say_so(prefect_harness, catalog):
     from flows.bootstrap import bootstrap
 
