@@ -177,6 +177,9 @@ def _configs(plan: dict, steps: int, warm_start: bool):
     model = ModelConfig(**plan["model"])
     train = {**plan["train"], **plan.get("train_overrides", {})}
     train["betas"] = tuple(train["betas"])
+    if float(train.get("canonical_replay", 0.0)) > 0:  # the rounds train on one pack each
+        raise ValueError(f"plan.json: gpu_rounds trains each round on its own renders only, got train."
+                         f"canonical_replay = {train['canonical_replay']} (run that loop through the flow)")
     return model, TrainConfig(**{**train, "steps": int(steps), "warm_start": warm_start})
 
 
@@ -227,6 +230,7 @@ def _train(args: argparse.Namespace) -> None:
     plan = json.loads((pack / "plan.json").read_text())
     if plan.get("format") != PACK_FORMAT:
         raise ValueError(f"{pack / 'plan.json'}: expected pack format {PACK_FORMAT}, got {plan.get('format')}")
+    _configs(plan, 1, False)  # a plan no round can train is refused before any round starts
     overrides = {k: int(v) for k, v in (("batch_size", args.batch_size), ("warmup_steps", args.warmup_steps))
                  if v is not None}
     if overrides:  # every model of the call (Φ₀ and each round) with these settings

@@ -92,6 +92,13 @@ def test_train_runs_phi0_and_equal_step_rounds_from_it(tmp_path):
     again = torch.cat([p.detach().flatten() for p in load_predictor(tmp_path / "out2" / "oracle.pt", "cpu")[0]
                        .parameters()])
     assert torch.allclose(again, wo, atol=1e-6)  # same Φ₀, data, seed and steps: the same round on CPU
+    # a loop with canonical replay mixes two training sets: the rounds cannot reproduce it, and say so
+    plan["train_overrides"] = {"canonical_replay": 1.0}
+    (pack / "plan.json").write_text(json.dumps(plan))
+    with pytest.raises(ValueError, match="plan.json: gpu_rounds trains each round on its own renders only, got "
+                                         "train.canonical_replay = 1.0"):
+        gpu_rounds.main(["train", "--pack", str(pack), "--out", str(tmp_path / "out3"), "--work",
+                         str(tmp_path / "w3"), "--phi0", str(out / "phi0.pt"), "--round-steps", "2"])
 
 
 def test_device_dataset_gives_the_source_batches_and_the_same_training(tmp_path):
