@@ -133,10 +133,7 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
                               "; canonical renders for train.canonical_replay" if replay else ", no canonical renders")
         it.notes.append(f"Φ_0 is {init_predictor} (init_predictor): not trained in this run.")
         if replay:  # the canonical renders the refinement iterations replay (the same plan and seed as Φ_0's run)
-            _render_canonical(it, cfg)
-            it.run(FEATURES, [{"input_dir": it.dir(RENDER), "index": r["index"], "out_dir": it.dir(FEATURES),
-                               "config": cfg.features} for r in it.stages[-1].records],
-                   max_failed_fraction=settings.max_failed_fraction)
+            _extract_features(it, cfg, _render_canonical(it, cfg))
         _evaluate_test(it, cfg, str(init_predictor))
         return _finish_iteration(it, str(init_predictor))
     _render_canonical(it, cfg)
@@ -272,14 +269,19 @@ def _filter_fits(it: _Iteration, cfg: StageSpecs) -> str:
     return it.dir(FILTER)
 
 
+def _extract_features(it: _Iteration, cfg: StageSpecs, training: StageResult) -> StageResult:
+    """Feature shards of the iteration's training shards (``training``: the render or raw-image stage)."""
+    return it.run(FEATURES, [{"input_dir": it.dir(RENDER), "index": r["index"], "out_dir": it.dir(FEATURES),
+                              "config": cfg.features} for r in training.records],
+                  max_failed_fraction=it.settings.max_failed_fraction)
+
+
 def _train_and_evaluate(it: _Iteration, cfg: StageSpecs, previous: str | None) -> dict[str, Any]:
     """The tail every iteration shares: features of the iteration's training shards → train Φ_iteration (from
     Φ_{iteration-1}'s weights ``previous`` when ``train.warm_start``; from scratch at iteration 0) → evaluate it
     on the collection (masks) and the test split."""
-    settings, mff = it.settings, it.settings.max_failed_fraction
-    training = it.stages[-1]  # render (or raw_images): the training shards
-    it.run(FEATURES, [{"input_dir": it.dir(RENDER), "index": r["index"], "out_dir": it.dir(FEATURES),
-                       "config": cfg.features} for r in training.records], max_failed_fraction=mff)
+    settings = it.settings
+    _extract_features(it, cfg, it.stages[-1])  # render (or raw_images): the training shards
     init_from = previous if previous is not None and settings.train.warm_start else None
     replay = {}
     if it.iteration > 0 and settings.train.canonical_replay > 0:  # iteration 0's canonical renders, mixed in
@@ -291,12 +293,12 @@ def _train_and_evaluate(it: _Iteration, cfg: StageSpecs, previous: str | None) -
                                     "rerun the run from iteration 0)")
     train = it.run(TRAIN, [{"shards_dir": it.dir(RENDER), "features_dir": it.dir(FEATURES), "out_dir": it.dir(TRAIN),
                             "config": cfg.train_from(init_from), **replay}], max_failed_fraction=0.0)
+    record = train.records[0]
     if replay:
-        n = train.records[0].get("n_replayed", 0) if train.records else 0
-        it.notes.append(f"canonical replay: {n} of iteration 0's canonical renders per epoch next to "
-                        f"{train.records[0]['n_samples'] - n if train.records else 0} pseudo-label renders "
+        it.notes.append(f"canonical replay: {record['n_replayed']} of iteration 0's canonical renders per epoch next "
+                        f"to {record['n_samples'] - record['n_replayed']} pseudo-label renders "
                         f"(train.canonical_replay = {settings.train.canonical_replay}).")
-    predictor = train.records[0]["predictor"]
+    predictor = record["predictor"]
     _evaluate_test(it, cfg, predictor)
     return _finish_iteration(it, predictor)
 

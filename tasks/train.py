@@ -7,7 +7,7 @@ from typing import Any, Callable, Mapping
 
 from bat3r_core import shards
 from bat3r_core.predictor import train as training
-from bat3r_core.predictor.data import MixedDataset, ShardDataset, hold_on_device
+from bat3r_core.predictor.data import MixedDataset, ShardDataset, hold_on_device, with_canonical_replay
 from bat3r_core.predictor.features import make_feature_fn
 from bat3r_core.specs import TrainSpec, as_spec
 from tasks._cache import shard_input_files, stage_task
@@ -74,17 +74,16 @@ def _dataset(shards_dir: str, features_dir: str | None, spec: TrainSpec) -> Shar
 
 def training_set(shards_dir: str, spec: TrainSpec, device: str | None, features_dir: str | None = None,
                  replay_dir: str | None = None, replay_features_dir: str | None = None):
-    """What ``train_model`` trains on: the shards of ``shards_dir`` (held on ``device`` when they fit,
-    ``data.hold_on_device``), mixed with ``round(train.canonical_replay × len)`` samples per epoch of the shards of
-    ``replay_dir`` (iteration 0's canonical renders; at most all of them) when both are given
-    (``data.MixedDataset``)."""
+    """What ``train_model`` trains on: the shards of ``shards_dir``, each set held on ``device`` when it fits
+    (``data.hold_on_device``), with iteration 0's canonical renders of ``replay_dir`` mixed in by the spec's
+    ``train.canonical_replay`` (``data.with_canonical_replay``)."""
     train_cfg = spec.train
-    data = hold_on_device(_dataset(shards_dir, features_dir, spec), device, train_cfg.mirror_probability)
-    if replay_dir is None or train_cfg.canonical_replay <= 0:
-        return data
-    replay = hold_on_device(_dataset(replay_dir, replay_features_dir, spec), device, train_cfg.mirror_probability)
-    take = min(len(replay), max(1, round(train_cfg.canonical_replay * len(data))))
-    return MixedDataset([data, replay], [len(data), take])
+
+    def held(folder: str, features: str | None):
+        return hold_on_device(_dataset(folder, features, spec), device, train_cfg.mirror_probability)
+
+    replay = held(replay_dir, replay_features_dir) if replay_dir and train_cfg.canonical_replay > 0 else None
+    return with_canonical_replay(held(shards_dir, features_dir), replay, train_cfg.canonical_replay)
 
 
 @stage_task("train", inputs=_inputs, output=lambda p: Path(p["out_dir"]), spec=TrainSpec, retries=1, gpu=True)

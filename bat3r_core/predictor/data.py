@@ -225,6 +225,7 @@ class DeviceDataset:
         self.source, self.device = source, torch.device(device)
         self.height, self.width, self.layers, self.channels = source.height, source.width, source.layers, \
             source.channels
+        self.shards_without_features = list(source.shards_without_features)
         parts: list[TrainingBatch] = []
         for start in range(0, len(source), int(chunk)):
             b = source.get_batch(np.arange(start, min(start + int(chunk), len(source))))
@@ -335,6 +336,15 @@ class MixedDataset:
 
         return TrainingBatch(cat([b.features for b in batches]), cat([b.mask for b in batches]),
                              TrainingTargets(*(cat([b.targets[i] for b in batches]) for i in range(3))))
+
+
+def with_canonical_replay(data, canonical, ratio: float):
+    """``data`` (an iteration's pseudo-label renders) with ``round(ratio × len(data))`` samples of ``canonical``
+    (iteration 0's renders; at least 1, at most all of them) per epoch, as a :class:`MixedDataset`; ``data`` itself
+    when ``canonical`` is None or ``ratio`` ≤ 0 (``TrainConfig.canonical_replay``)."""
+    if canonical is None or ratio <= 0:
+        return data
+    return MixedDataset([data, canonical], [len(data), min(len(canonical), max(1, round(ratio * len(data))))])
 
 
 def _name(dataset) -> str:

@@ -10,7 +10,7 @@ import torch.multiprocessing as mp
 from bat3r_core.config_utils import ConfigError
 from bat3r_core.pointmaps import decode_float16
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
-from bat3r_core.predictor.data import MixedDataset, ShardDataset, rgb_features
+from bat3r_core.predictor.data import DeviceDataset, MixedDataset, ShardDataset, rgb_features
 from bat3r_core.predictor.infer import load_predictor
 from bat3r_core.predictor.network import DualPointMapNet
 from bat3r_core.predictor.synthetic import synthetic_samples, write_synthetic_shards
@@ -144,6 +144,20 @@ def test_dataset_streams_the_feature_shards_of_the_features_stage(tmp_path):
     assert len(partial) == 8 and partial.shards_without_features == [2]
     with pytest.raises(ValueError, match="feature_fn or features_dir"):
         ShardDataset(tmp_path / "s", rgb_features, features_dir=tmp_path / "f")
+
+
+def test_held_and_mixed_sets_still_report_shards_without_features(tmp_path):
+    """What the train task's record lists as ``shards_without_features`` survives holding the set on a device and
+    mixing it with the canonical replay."""
+    from bat3r_core.predictor.features import FeatureConfig, extract_feature_shard
+
+    write_synthetic_shards(tmp_path / "s", 12, 16, shard_size=4, seed=5, with_head=False)
+    for i in range(2):  # no feature shard for training shard 2
+        extract_feature_shard(tmp_path / "s", i, tmp_path / "f", FeatureConfig())
+    held = DeviceDataset(ShardDataset(tmp_path / "s", features_dir=tmp_path / "f"), "cpu")
+    assert len(held) == 8 and held.shards_without_features == [2]
+    assert MixedDataset([held, ShardDataset(tmp_path / "s", features_dir=tmp_path / "f")], [8, 4]
+                        ).shards_without_features == [2, 2]
 
 
 def test_epoch_order_is_a_seeded_permutation(shards16):
