@@ -35,8 +35,8 @@ from bat3r_core import shards, stages
 from bat3r_core.metrics import mask_iou
 
 __all__ = ["COLLECTION_SPLIT", "COLLECTION_SCHEMA", "COLLECTION_METRIC_COLUMNS", "COLLECTION_ROWS_DIR",
-           "COLLECTION_INFER_DIR", "predicted_mask", "fit_silhouette", "fit_silhouettes", "collection_rows",
-           "evaluate_collection_shard", "read_collection_rows", "aggregate_collection"]
+           "COLLECTION_INFER_DIR", "read_masks", "predicted_mask", "fit_silhouette", "fit_silhouettes",
+           "collection_rows", "evaluate_collection_shard", "read_collection_rows", "aggregate_collection"]
 
 COLLECTION_SPLIT = "collection"
 COLLECTION_ROWS_DIR = stages.stage(stages.EVALUATE_COLLECTION).folder.split("/")[-1]
@@ -63,6 +63,19 @@ COLLECTION_SCHEMA = pa.schema([
 COLLECTION_METRIC_COLUMNS = ("pred_mask_iou", "fit_mask_iou", "n_fits")
 """Columns of the ``collection`` rows of ``metrics.parquet`` beyond ``METRICS_SCHEMA``: mean ``pred_mask_iou``
 over the ok predictions (``n`` of them), mean ``fit_mask_iou`` over the evaluated fits, their count ``n_fits``."""
+
+
+def read_masks(collection_dir: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Sample id → foreground mask ``(H, W) bool`` of every complete shard of ``collection_dir`` (a run's
+    ``collection`` stage: the crops at the model's resolution)."""
+    masks: dict[str, np.ndarray] = {}
+    for i in shards.list_shards(collection_dir):
+        table, arrays = shards.read_shard(collection_dir, i)
+        if "mask" not in arrays:
+            raise ValueError(f"collection shard {i} of {collection_dir} has no 'mask' array")
+        masks.update(zip((str(s) for s in table.column("sample_id").to_pylist()),
+                         (np.asarray(m, dtype=bool) for m in arrays["mask"])))
+    return masks
 
 
 def predicted_mask(occupancy: np.ndarray, threshold: float = MIN_OCCUPANCY) -> np.ndarray:

@@ -10,7 +10,10 @@ distance; thresholds not published). Here:
   ``camera_reprojection_px``, ``camera_inlier_ratio``) plus two cheap ones computed here: ``canonical_chamfer_cm``
   (RMS distance of the prediction's canonical points to their nearest rest-mesh vertex, one-sided: a partial view
   covers part of the mesh) and ``pose_joint_dist_cm`` (``f_dist`` of :func:`bat3r_core.poses.pose_features`, in
-  cm: the sum over joints of the distance between the Kabsch-aligned posed joints and the rest joints).
+  cm: the sum over joints of the distance between the Kabsch-aligned posed joints and the rest joints); and, given
+  the images' masks, two that need no 3D truth (:func:`mask_agreement`): ``mask_iou``, the IoU of the fitted mesh's
+  silhouette through its recovered camera with the mask, and ``mask_iou_gain``, that IoU minus the rest pose's seen
+  through the same camera.
 * :class:`PseudoLabelFilterConfig` and :func:`filter_fits` — thresholds per column, then the best
   ``keep_quantile`` of the ok fits by ``score``, then at least ``min_kept`` fits; every row gets a kept flag, a
   status (``ok`` or the drop status) and a reason.
@@ -34,12 +37,13 @@ from bat3r_core import shards
 
 __all__ = ["QUALITY_COLUMNS", "HIGHER_IS_BETTER", "FILTER_COLUMNS", "STATUS_NOT_FITTED", "STATUS_QUANTILE",
            "PseudoLabelFilterConfig", "quality_rows", "filter_fits", "write_filter_shards", "read_kept",
-           "filter_counts", "rest_pose_errors", "filter_precision", "score_ranking"]
+           "filter_counts", "rest_pose_errors", "filter_precision", "score_ranking", "mask_agreement"]
 
 QUALITY_COLUMNS = ("residual_chamfer_cm", "inlier_ratio", "mean_confidence", "loss_data", "loss_total",
-                   "camera_reprojection_px", "camera_inlier_ratio", "canonical_chamfer_cm", "pose_joint_dist_cm")
+                   "camera_reprojection_px", "camera_inlier_ratio", "canonical_chamfer_cm", "pose_joint_dist_cm",
+                   "mask_iou", "mask_iou_gain")
 """Per-fit quality columns a filter can threshold or rank by."""
-HIGHER_IS_BETTER = frozenset({"inlier_ratio", "mean_confidence", "camera_inlier_ratio"})
+HIGHER_IS_BETTER = frozenset({"inlier_ratio", "mean_confidence", "camera_inlier_ratio", "mask_iou", "mask_iou_gain"})
 """Quality columns where larger is better (the others: smaller is better)."""
 FILTER_COLUMNS = ("sample_id", "kept", "status", "reason", "score", *QUALITY_COLUMNS)
 """Columns of a filter shard row."""
@@ -94,14 +98,16 @@ def _float(v: Any) -> float:
     return float("nan") if v is None else float(v)
 
 
-def quality_rows(fit_rows: Sequence[Mapping[str, Any]], rig, canonical_points: Sequence[np.ndarray | None]
-                 ) -> list[dict[str, Any]]:
+def quality_rows(fit_rows: Sequence[Mapping[str, Any]], rig, canonical_points: Sequence[np.ndarray | None],
+                 masks: Sequence[np.ndarray | None] | None = None) -> list[dict[str, Any]]:
     """The quality columns (:data:`QUALITY_COLUMNS`) of every fit row, plus ``sample_id`` and ``fit_status``.
 
     Args:
         fit_rows: fit shard rows (``bat3r_core.fitting.io.FIT_COLUMNS``).
         rig: the category's rig (rest vertices and joints; skinning of the fitted θ).
         canonical_points: per row, the prediction's canonical points (metres, canonical frame) or None.
+        masks: per row, the image's foreground mask ``(height, width)`` at the fit camera's image size (the crop the
+            predictor saw), or None; without masks ``mask_iou`` and ``mask_iou_gain`` are NaN.
     Rows whose fit is not ok get NaN in the computed columns.
     """
     import torch
@@ -136,6 +142,47 @@ def quality_rows(fit_rows: Sequence[Mapping[str, Any]], rig, canonical_points: S
             row["canonical_chamfer_cm"] = float("nan")
         row["pose_joint_dist_cm"] = float(pose[i])
         out.append(row)
+    if masks is not None:
+        if len(masks) != len(fit_rows):
+            raise ValueError(f"masks: expected {len(fit_rows)} entries (one per fit row), got {len(masks)}")
+        for row, (iou, gain) in zip(out, mask_agreement(fit_rows, rig, masks)):
+            row["mask_iou"], row["mask_iou_gain"] = iou, gain
+    else:
+        for row in out:
+            row["mask_iou"] = row["mask_iou_gain"] = float("nan")
+    return out
+
+
+def mask_agreement(fit_rows: Sequence[Mapping[str, Any]], rig, masks: Sequence[np.ndarray | None]
+                   ) -> list[tuple[float, float]]:
+    """Per fit row, ``(mask_iou, mask_iou_gain)``: the IoU of the fitted mesh's silhouette through its recovered
+    camera (``bat3r_core.evaluation_masks.fit_silhouettes``) with the image's mask, and that IoU minus the IoU of the
+    same fit with its articulation undone (every non-root joint's θ set to zero; root θ, global similarity and camera
+    kept): how much better the fitted pose explains the mask than the rest pose seen the same way. Needs no 3D
+    truth. NaN for a fit that is not ok, has no camera or no mask, or whose camera's image size differs from the
+    mask's."""
+    from bat3r_core.evaluation_masks import fit_silhouettes
+    from bat3r_core.metrics import mask_iou
+
+    nan = (float("nan"), float("nan"))
+    use = [i for i, r in enumerate(fit_rows) if r["status"] == shards.STATUS_OK and masks[i] is not None]
+    out = [nan] * len(fit_rows)
+    if not use:
+        return out
+    roots = np.asarray(rig.parents) < 0
+    unposed = []
+    for i in use:
+        theta = np.asarray(fit_rows[i]["excess_rotations"], np.float64).reshape(rig.num_joints, 3).copy()
+        theta[~roots] = 0.0
+        unposed.append({**fit_rows[i], "excess_rotations": theta.ravel().tolist()})
+    fitted = fit_silhouettes(rig, [fit_rows[i] for i in use])
+    rest = fit_silhouettes(rig, unposed)
+    for i, a, b in zip(use, fitted, rest):
+        mask = np.asarray(masks[i], dtype=bool)
+        if a is None or b is None or a.shape != mask.shape:
+            continue
+        iou = mask_iou(a, mask)
+        out[i] = (iou, iou - mask_iou(b, mask))
     return out
 
 

@@ -31,6 +31,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -44,6 +45,7 @@ from _results import record  # noqa: E402
 
 from bat3r_core import evaluation_truth, shards  # noqa: E402
 from bat3r_core.cameras import PinholeCamera  # noqa: E402
+from bat3r_core.evaluation_masks import read_masks  # noqa: E402
 from bat3r_core.cli import parse_overrides  # noqa: E402
 from bat3r_core.config_utils import ConfigError, replace_path  # noqa: E402
 from bat3r_core.fitting.fit import FittingAsset, PointCloudInstance, fit_batch  # noqa: E402
@@ -150,16 +152,39 @@ def pose_quality(rows: list[dict], gt: dict, rig, errors: tuple[list[dict], list
 
 
 def refit_filter_precision(rows: list[dict], instances: list[PointCloudInstance], gt: dict, rig, config,
-                           errors: tuple[list[dict], list[dict]] | None = None) -> dict[str, float | None]:
+                           errors: tuple[list[dict], list[dict]] | None = None,
+                           masks: dict | None = None) -> dict[str, float | None]:
     """The run's pseudo-label filter (``config``: a ``PseudoLabelFilterConfig``) applied to these fits — their own
-    quality columns, with the canonical points they were fitted to — scored against the truth
-    (``bat3r_core.pseudo_labels.filter_precision``: precision, recall, base rate of the kept set). ``errors``:
-    ``pose_errors(rows, gt, rig)`` when already computed."""
+    quality columns, with the canonical points they were fitted to and (``masks``: sample id → crop mask) the masks
+    of the mask columns — scored against the truth (``bat3r_core.pseudo_labels.filter_precision``: precision,
+    recall, base rate of the kept set). ``errors``: ``pose_errors(rows, gt, rig)`` when already computed."""
     from bat3r_core import pseudo_labels
 
     fitted, rest = errors if errors is not None else pose_errors(rows, gt, rig)
-    quality = pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances])
+    quality = pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances],
+                                         None if masks is None else [masks.get(inst.sample_id) for inst in instances])
     return pseudo_labels.filter_precision(fitted, rest, pseudo_labels.filter_fits(quality, config))
+
+
+def refit_ranking(rows: list[dict], instances: list[PointCloudInstance], gt: dict, rig,
+                  errors: tuple[list[dict], list[dict]], masks: dict | None = None) -> dict[str, float]:
+    """How each quality column ranks these fits against the truth (``pseudo_labels.score_ranking`` of their own
+    quality columns): ``rank_rho_<column>`` and ``rank_precision_q0.25_<column>``, as ``ranking_figures`` gives them
+    for the run's own fits."""
+    from bat3r_core import pseudo_labels
+
+    fitted, rest = errors
+    quality = pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances],
+                                         None if masks is None else [masks.get(inst.sample_id) for inst in instances])
+    ranking = pseudo_labels.score_ranking(fitted, rest, quality, quantiles=(0.25,))
+    ranking.pop("all")
+    out = {}
+    for column, entry in ranking.items():
+        if math.isfinite(entry["rho"]):  # NaN where a column is constant over these fits
+            out[f"rank_rho_{column}"] = round(entry["rho"], 2)
+        if entry["precision@0.25"] is not None:
+            out[f"rank_precision_q0.25_{column}"] = round(entry["precision@0.25"], 2)
+    return out
 
 
 PRECISION_GOAL = 0.8
@@ -199,7 +224,8 @@ def ranking_figures(layout, iteration: int, gt: dict, rig) -> dict[str, float]:
                                           shards.read_table(filter_dir).to_pylist())
     figures = {"rank_base_rate": round(ranking.pop("all")["base_rate"] or float("nan"), 3)}
     for column, entry in ranking.items():
-        figures[f"rank_rho_{column}"] = round(entry["rho"], 2)
+        if math.isfinite(entry["rho"]):  # NaN where a column is constant (or absent: filter shards of older runs)
+            figures[f"rank_rho_{column}"] = round(entry["rho"], 2)
         figures.update({f"rank_precision_q{k.split('@')[1]}_{column}": round(v, 2)
                         for k, v in entry.items() if k.startswith("precision@") and v is not None})
     return figures
@@ -250,6 +276,7 @@ def main(argv: list[str] | None = None) -> dict:
     camera = PinholeCamera.from_fov(settings.camera_prior.fov_deg, r, r)
     crops = {row["sample_id"]: crop_transform_from_row(row)
              for row in shards.read_table(layout.run_stage_dir("collection")).to_pylist() if row["status"] == "ok"}
+    masks = read_masks(layout.run_stage_dir("collection"))
     instances = [inst for i in shards.list_shards(infer_dir) for inst in instances_from_predictions(infer_dir, i,
                                                                                                     camera)[0]
                  if len(inst.posed_points) and inst.sample_id in gt and inst.sample_id in crops]
@@ -268,9 +295,11 @@ def main(argv: list[str] | None = None) -> dict:
         errors = pose_errors(rows, gt, rig)
         quality = pose_quality(rows, gt, rig, errors)
         if not settings.ablations.no_pseudo_label_filter:  # what the run's filter would keep of these fits
-            check = refit_filter_precision(rows, fitted, gt, rig, settings.pseudo_label_filter, errors)
+            check = refit_filter_precision(rows, fitted, gt, rig, settings.pseudo_label_filter, errors, masks)
             figures.update({f"refit_filter_{k}_{name}": round(float(check[k]), 3)
                             for k in ("precision", "recall", "base_rate") if check[k] is not None})
+        ranked_refit = refit_ranking(rows, fitted, gt, rig, errors, masks)
+        figures.update({f"refit_{k}_{name}": v for k, v in ranked_refit.items()})
         figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
         figures[f"pct_better_than_rest_{name}"] = round(quality["pct_better_than_rest"], 1)
         figures[f"median_fit_vertex_err_cm_{name}"] = round(quality["median_vertex_err_cm"], 2)
@@ -281,6 +310,11 @@ def main(argv: list[str] | None = None) -> dict:
               f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images"
               + (f"; the run's filter keeps them with precision {figures[f'refit_filter_precision_{name}']:.2f}"
                  if f"refit_filter_precision_{name}" in figures else ""), flush=True)
+        quarters = {k[len("rank_precision_q0.25_"):]: v for k, v in ranked_refit.items()
+                    if k.startswith("rank_precision_q0.25_")}
+        if quarters:
+            print(f"{'':>13}  best quarter by each quality column beats the rest pose for: " + ", ".join(
+                f"{c} {v:.0%}" for c, v in sorted(quarters.items(), key=lambda kv: -kv[1])), flush=True)
     print("median per-image errors of the predictions: " + ", ".join(
         f"{k[len('median_'):]} {v}" for k, v in figures.items()
         if k.startswith("median_") and not k.startswith(("median_fit_", "median_rest_"))))

@@ -251,7 +251,7 @@ def _filter_fits(it: _Iteration, cfg: StageSpecs) -> str:
     filter folder plan views reads."""
     settings, iteration = it.settings, it.iteration
     result = it.run(FILTER, [{"asset": settings.assets.asset, "fit_dir": it.dir(FIT), "predictions_dir": it.dir(INFER),
-                              "out_dir": it.dir(FILTER), "config": cfg.filter}],
+                              "out_dir": it.dir(FILTER), "config": cfg.filter, "collection_dir": it.dir(COLLECTION)}],
                     max_failed_fraction=0.0, needs=SampleNeed(1, "view planning", "one kept fit to render"))
     errors = Path(it.dir(PSEUDO_LABELS)) / "pseudo_labels.parquet"
     check_record = None

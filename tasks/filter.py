@@ -24,17 +24,21 @@ def _fit_files(fit_dir: str) -> list[Path]:
 def _inputs(p: Mapping[str, Any]) -> list[Path]:
     from bat3r_core.predictor.infer import clouds_path
 
+    collection = p.get("collection_dir")
     return [Path(p["asset"])] + _fit_files(p["fit_dir"]) + \
-        [clouds_path(p["predictions_dir"], i) for i in shards.list_shards(p["fit_dir"])]
+        [clouds_path(p["predictions_dir"], i) for i in shards.list_shards(p["fit_dir"])] + \
+        ([f for i in shards.list_shards(collection) for f in shard_input_files(collection, i)] if collection else [])
 
 
 @stage_task("filter", inputs=_inputs, output=lambda p: Path(p["out_dir"]),
             spec=pseudo_labels.PseudoLabelFilterConfig)
 def filter_pseudo_labels(asset: str, fit_dir: str, predictions_dir: str, out_dir: str,
-                         config: pseudo_labels.PseudoLabelFilterConfig | Mapping[str, Any]) -> dict:
+                         config: pseudo_labels.PseudoLabelFilterConfig | Mapping[str, Any],
+                         collection_dir: str | None = None) -> dict:
     """Quality columns of every fit of ``fit_dir`` (``pseudo_labels.quality_rows``; the canonical points come from
-    the inference clouds of ``predictions_dir``), the filter (``pseudo_labels.filter_fits``; its quantile is over
-    all the iteration's fits) and one filter shard per fit shard in ``out_dir``.
+    the inference clouds of ``predictions_dir``, the masks of ``mask_iou`` / ``mask_iou_gain`` from the collection
+    crops of ``collection_dir``; without it those columns are NaN), the filter (``pseudo_labels.filter_fits``; its
+    quantile is over all the iteration's fits) and one filter shard per fit shard in ``out_dir``.
 
     config: a ``PseudoLabelFilterConfig`` (or its mapping). Returns ``stage, files, parquet, content_hash``,
     ``n_rows`` (ok fits: the candidates), ``n_ok`` (kept), ``status_counts`` / ``status_examples`` (the drops, as
@@ -59,7 +63,13 @@ def filter_pseudo_labels(asset: str, fit_dir: str, predictions_dir: str, out_dir
         rows += fit_rows
         points += [clouds.instance(k)["canonical_points"] for k in range(len(fit_rows))]
         sizes.append(len(fit_rows))
-    quality = pseudo_labels.quality_rows(rows, load_rig(asset), points)
+    masks = None
+    if collection_dir is not None:
+        from bat3r_core.evaluation_masks import read_masks
+
+        by_id = read_masks(collection_dir)
+        masks = [by_id.get(str(r["sample_id"])) for r in rows]
+    quality = pseudo_labels.quality_rows(rows, load_rig(asset), points, masks)
     decided = pseudo_labels.filter_fits(quality, cfg)
     paths = pseudo_labels.write_filter_shards(out_dir, indices, decided, sizes)
     files = [p.parquet for p in paths]

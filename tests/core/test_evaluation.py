@@ -461,3 +461,30 @@ def test_prediction_map_errors_of_exact_and_depth_reversed_predictions(toy_rig, 
         np.testing.assert_allclose(e.depth, 2 * np.abs(rel[occ > 0.5][:, 2]), atol=2e-3)
     with pytest.raises(ValueError, match="predicted at 32 px"):
         T.prediction_map_errors(tmp_path / "exact", [{**rows[0], "resolution": 64}], gts, toy_rig)
+
+
+def test_mask_agreement_of_the_true_pose_beats_its_rest_pose_and_the_rest_pose_gains_nothing(toy_rig):
+    """pseudo_labels.mask_agreement: IoU of the fit's silhouette with the mask, and its gain over the same fit with
+    the articulation undone, against hand-computed IoUs of the ray-cast silhouettes."""
+    from bat3r_core import pseudo_labels as PL
+    from bat3r_core.evaluation_masks import fit_silhouette
+    from bat3r_core.metrics import mask_iou
+
+    mask, row = _toy_view(toy_rig)
+    j = toy_rig.num_joints
+    theta = np.asarray(row["excess_rotations"]).reshape(j, 3).copy()
+    theta[np.asarray(toy_rig.parents) >= 0] = 0.0
+    rest = {**row, "sample_id": "rest", "excess_rotations": theta.ravel().tolist()}
+    rest_iou = mask_iou(fit_silhouette(toy_rig, rest), mask)
+    rows = [row, rest, {**row, "sample_id": "nomask"}, {**row, "sample_id": "bad", "status": "too_few_points"},
+            {**row, "sample_id": "small", "width": 32, "height": 32}]
+    got = PL.mask_agreement(rows, toy_rig, [mask, mask, None, mask, mask])
+    assert got[0][0] == pytest.approx(mask_iou(fit_silhouette(toy_rig, row), mask)) and got[0][0] > 0.97
+    assert got[0][1] == pytest.approx(got[0][0] - rest_iou) and got[0][1] > 0.03  # the pose explains the mask
+    assert got[1] == (pytest.approx(rest_iou), pytest.approx(0.0, abs=1e-12))       # the rest pose gains nothing
+    assert all(math.isnan(v) for k in (2, 3, 4) for v in got[k])                     # no mask, no fit, other size
+    q = PL.quality_rows(rows[:2], toy_rig, [None, None], [mask, mask])
+    assert q[0]["mask_iou"] == pytest.approx(got[0][0]) and q[1]["mask_iou_gain"] == pytest.approx(0.0, abs=1e-12)
+    assert all(math.isnan(r["mask_iou"]) for r in PL.quality_rows(rows[:2], toy_rig, [None, None]))
+    with pytest.raises(ValueError, match="one per fit row"):
+        PL.quality_rows(rows[:2], toy_rig, [None, None], [mask])

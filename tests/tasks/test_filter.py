@@ -93,6 +93,42 @@ def test_filter_cache_key_covers_the_fit_shards_and_the_filter_config(tmp_path, 
     assert key(p) != k0
 
 
+def test_filter_task_scores_fits_by_their_agreement_with_the_collection_masks(tmp_path, toy_rig):
+    """With the collection crops, the filter computes mask_iou / mask_iou_gain per fit; ranking by mask_iou keeps the
+    fits whose silhouette is the image's mask; the collection shards are part of the cache key."""
+    from bat3r_core.evaluation_masks import fit_silhouette
+
+    asset, fit_dir, infer_dir = _setup(tmp_path, toy_rig)
+    fits = {r["sample_id"]: r for r in shards.read_table(fit_dir).to_pylist()}
+    coll = tmp_path / "collection"
+    for index, ids in ((0, ["s0", "s1"]), (1, ["s2", "s3", "s9"])):
+        masks = []
+        for sid in ids:
+            own = fit_silhouette(toy_rig, fits[sid]) if fits[sid]["status"] == "ok" else None
+            shape = (fits["s0"]["height"], fits["s0"]["width"])
+            # s0 and s3: the fit's own silhouette; s1 and s2: the silhouette moved by a third of the image
+            masks.append(np.zeros(shape, bool) if own is None else
+                         own if sid in ("s0", "s3") else np.roll(own, shape[1] // 3, axis=1))
+        shards.write_shard(coll, index, [{"sample_id": s, "status": "ok", "reason": ""} for s in ids],
+                           {"mask": np.stack(masks)})
+    out_dir = str(tmp_path / "filter")
+    rec = filter_pseudo_labels.fn(asset, fit_dir, infer_dir, out_dir, {"score": "mask_iou", "keep_quantile": 0.5},
+                                  collection_dir=str(coll))
+    rows = {r["sample_id"]: r for r in shards.read_table(out_dir).to_pylist()}
+    assert rows["s0"]["mask_iou"] == 1.0 and rows["s3"]["mask_iou"] == 1.0
+    assert rows["s1"]["mask_iou"] < 0.6 and rows["s2"]["mask_iou"] < 0.6
+    assert [s for s in sorted(rows) if rows[s]["kept"]] == ["s0", "s3"] and rec["n_ok"] == 2
+    assert rows["s0"]["mask_iou_gain"] == 0.0  # fits of the rest pose: nothing to gain over it
+    assert np.isnan(rows["s9"]["mask_iou"])
+    p = {"asset": asset, "fit_dir": fit_dir, "predictions_dir": infer_dir, "out_dir": out_dir,
+         "config": {"score": "mask_iou"}, "collection_dir": str(coll)}
+    k0 = stage_cache_key("filter", "v", _inputs(p), p["config"], out_dir)
+    assert stage_cache_key("filter", "v", _inputs({**p, "collection_dir": None}), p["config"], out_dir) != k0
+    table, arrays = shards.read_shard(coll, 0)
+    shards.write_shard(coll, 0, table, {"mask": ~arrays["mask"]})
+    assert stage_cache_key("filter", "v", _inputs(p), p["config"], out_dir) != k0
+
+
 def test_precision_check_task_against_the_truth(tmp_path, toy_rig):
     from bat3r_core.evaluation_truth import write_pseudo_label_errors
     from bat3r_core.poses import sample_toy_natural_poses
