@@ -266,6 +266,78 @@ def larger_oracles(sizes: list[int], preset: str, run_name: str, overrides: dict
     return arms, figures
 
 
+SEED_ARMS = ("loop", "control", "oracle")
+"""The arms ``--seeds`` repeats for each extra seed."""
+
+
+def seed_arms(seeds: list[int], preset: str, run_name: str, overrides: dict, catalog: str | None, phi0: Path,
+              iterations: int, category: str = "toy") -> dict[str, dict[int, dict]]:
+    """The loop, the control and the oracle again from the same Φ₀ for each seed ``s`` of ``--seeds`` other than 0
+    (seed 0 is the benchmark's own arms): the loop is the run ``<run name>-seed<s>`` started from Φ₀ with
+    ``--seed s`` and ``train.seed = s`` (other render jobs, data order and mirroring), the control and the oracle are
+    that run's ``fidelity/control`` and ``fidelity/oracle`` rounds with ``train.seed = s``, on the same canonical
+    renders (Φ₀'s run's) and the same collection. Every test evaluation uses the loop's seeds (``s + i``). Returns
+    arms ``<arm>_seed<s>``: how far one arm moves between seeds, which bounds what a single run can tell apart."""
+    from flows._settings import resolve_run
+
+    canonical = resolve_run(category, preset, run_name, overrides, catalog=catalog).layout.stage_dir(0, "render")
+    arms: dict[str, dict[int, dict]] = {}
+    for s in seeds:
+        if s == 0:
+            continue
+        name, seeded = f"{run_name}-seed{s}", {**overrides, "train.seed": s}
+        loop = _run_loop(category, preset, name, seeded, iterations, catalog, init_predictor=str(phi0), seed=s)
+        settings = resolve_run(category, preset, name, seeded, catalog=catalog)
+        arms[f"loop_seed{s}"] = loop
+        arms[f"control_seed{s}"] = {0: loop[0], **_reference_rounds(settings, "control", lambda out: canonical,
+                                                                     iterations, s, start=phi0)}
+        arms[f"oracle_seed{s}"] = {0: loop[0], **_reference_rounds(
+            settings, "oracle", lambda out, st=settings: _oracle_dataset(st, load_rig(st.assets.asset), out),
+            iterations, s, start=phi0)}
+    return arms
+
+
+def seed_figures(seeds: list[int], arms: dict[str, dict[int, dict]], iterations: int) -> dict[str, float]:
+    """Over the seeds (seed 0: the arms ``loop``, ``control``, ``oracle``; others ``<arm>_seed<s>``), the last
+    iteration's test mCD of each arm: ``mcd_<arm>_seeds_mean`` and ``_sd`` (sample standard deviation), the paired
+    ``loop_minus_control_seeds_mean`` / ``_sd``, ``loop_ahead_of_control_seeds`` (seeds where the loop's mCD is below
+    the control's), ``headroom_seeds_mean`` (mean oracle / mean control) and ``loop_gap_recovered_seeds_mean``;
+    empty with fewer than two seeds."""
+    if len(seeds) < 2:
+        return {}
+    last = {arm: np.array([float(arms[arm if s == 0 else f"{arm}_seed{s}"][iterations]["mcd_cm"]) for s in seeds])
+            for arm in SEED_ARMS}
+    out: dict[str, float] = {"seeds": len(seeds)}
+    for arm, values in last.items():
+        out[f"mcd_{arm}_seeds_mean"] = round(float(values.mean()), 3)
+        out[f"mcd_{arm}_seeds_sd"] = round(float(values.std(ddof=1)), 3)
+    diff = last["loop"] - last["control"]
+    out["loop_minus_control_seeds_mean"] = round(float(diff.mean()), 3)
+    out["loop_minus_control_seeds_sd"] = round(float(diff.std(ddof=1)), 3)
+    out["loop_ahead_of_control_seeds"] = int((diff < 0).sum())
+    control, oracle, loop = (float(last[a].mean()) for a in ("control", "oracle", "loop"))
+    out["headroom_seeds_mean"] = round(oracle / control, 3)
+    recovered = gap_recovered(control, oracle, loop)
+    if recovered == recovered:
+        out["loop_gap_recovered_seeds_mean"] = round(recovered, 3)
+    return out
+
+
+def seed_line(figures: dict[str, float]) -> str | None:
+    """The verdict over ``--seeds`` (``seed_figures``), or None without it."""
+    if "seeds" not in figures:
+        return None
+    n, f = int(figures["seeds"]), figures
+    arms = ", ".join(f"{a} {f[f'mcd_{a}_seeds_mean']:.2f} ± {f[f'mcd_{a}_seeds_sd']:.2f}" for a in SEED_ARMS)
+    diff, sd = f["loop_minus_control_seeds_mean"], f["loop_minus_control_seeds_sd"]
+    return (f"over {n} seeds from the same Φ₀ (mean ± sd of the last iteration's test mCD, cm): {arms}; the loop is "
+            f"{abs(diff):.2f} cm {'ahead of' if diff < 0 else 'behind'} the control on average (paired sd {sd:.2f}; "
+            f"ahead in {int(f['loop_ahead_of_control_seeds'])} of {n} seeds), headroom of the means "
+            f"{f['headroom_seeds_mean']:.3f}"
+            + (f", share of the gap recovered {f['loop_gap_recovered_seeds_mean']:.0%}"
+               if "loop_gap_recovered_seeds_mean" in f and f["headroom_seeds_mean"] <= HEADROOM_GOAL else ""))
+
+
 def gap_recovered(control: float, oracle: float, loop: float) -> float:
     """The fraction of the control → oracle gap in mCD the loop closes (1: as good as the oracle; 0: no better
     than the control; negative: worse). NaN when the oracle is no better than the control (no gap to close)."""
@@ -321,6 +393,9 @@ def verdict_lines(figures: dict[str, float]) -> list[str]:
                      f"{figures[key] / control:.3f}"
                      + (f"; {figures[f'mcd_oracle_n{size}_on_collection']:.2f} cm on its training images"
                         if f"mcd_oracle_n{size}_on_collection" in figures else "") + ")")
+    seeds = seed_line(figures)
+    if seeds:
+        lines.append(seeds)
     lines.append("paper's ablation ordering " + ablation_ordering(
         loop, figures.get(f"mcd_no_view_augmentation_iter{n}"), figures.get(f"mcd_no_fitting_regularisation_iter{n}")))
     return lines
@@ -368,6 +443,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--oracle-sizes", nargs="+", type=int, default=[], metavar="N",
                    help="also train the oracle on generated collections of N images each (does the headroom grow "
                         "with the number of distinct posed images?)")
+    p.add_argument("--seeds", nargs="+", type=int, default=[0], metavar="S",
+                   help="repeat the loop, the control and the oracle from the same Φ₀ with these seeds (0: the "
+                        "benchmark's own arms) and report each arm's mean and spread (~25 min per extra seed and "
+                        "iteration on 2 cores)")
     p.add_argument("--record-as", default="fidelity", help="name of results/<name>.json and .png")
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR,
                    help="folder of the json and plot (default: benchmarks/results, which also refreshes RESULTS.md)")
@@ -388,6 +467,8 @@ def main(argv: list[str] | None = None) -> dict:
     iterations = settings.iterations if args.iterations is None else args.iterations
     if iterations < 1:
         p.error("--iterations must be >= 1: the arms differ only after iteration 0")
+    if any(s < 0 for s in args.seeds) or len(set(args.seeds)) != len(args.seeds) or 0 not in args.seeds:
+        p.error(f"--seeds: expected distinct seeds >= 0 including 0 (the benchmark's own arms), got {args.seeds}")
     if any(n < 1 for n in args.oracle_sizes):
         p.error("--oracle-sizes: expected collection sizes >= 1")
 
@@ -408,6 +489,7 @@ def main(argv: list[str] | None = None) -> dict:
     sized_arms, sized_figures = larger_oracles(args.oracle_sizes, args.preset, run_name, overrides, catalog, phi0,
                                                iterations, run_seed, args.category)
     arms.update(sized_arms)
+    arms.update(seed_arms(args.seeds, args.preset, run_name, overrides, catalog, phi0, iterations, args.category))
 
     figures: dict[str, float] = {"iterations": iterations}
     for arm, rows in arms.items():
@@ -423,6 +505,7 @@ def main(argv: list[str] | None = None) -> dict:
     figures.update(training_fit(settings, {"oracle": _round_checkpoint(settings, "oracle", iterations), "phi0": phi0},
                                 iterations, run_seed))
     figures.update(sized_figures)
+    figures.update(seed_figures(args.seeds, arms, iterations))
     root = settings.layout.root / "fidelity"
     figures["crop_px"] = settings.model.resolution
     figures.update(map_error_figures(settings, {

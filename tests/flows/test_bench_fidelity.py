@@ -31,8 +31,8 @@ ARGS = ["--preset", "bench", "--run-name", "bt", "--iterations", "1",
 @pytest.fixture(scope="module")
 def bench_run(prefect_harness, catalog, tmp_path_factory):
     out = tmp_path_factory.mktemp("fidelity")
-    figures = B.main([*ARGS, "--ablations", "no_pseudo_label_filter", "--oracle-sizes", "12", "--results-dir",
-                      str(out)])
+    figures = B.main([*ARGS, "--ablations", "no_pseudo_label_filter", "--oracle-sizes", "12", "--seeds", "0", "1",
+                      "--results-dir", str(out)])
     return figures, out
 
 
@@ -98,7 +98,21 @@ def test_the_bench_preset_runs_every_arm_from_one_phi0(bench_run, catalog):
     assert figures["mcd_oracle_n12_iter0"] == figures["mcd_loop_iter0"]
     assert math.isfinite(figures["mcd_oracle_n12_iter1"])
     assert json.loads((sized.root / "fidelity" / "on_collection" / "oracle" / "metrics.json").read_text())["n"] > 0
+    # --seeds 0 1: the loop, control and oracle again from the same Φ₀ with seed 1, a run of its own
+    seeded = RunLayout(catalog / "runs", "toy", "bt-seed1")
+    config = read_manifest(seeded)["config"]
+    assert config["parameters"]["init_predictor"] == str((layout.stage_dir(0, "train") / "predictor.pt").resolve())
+    assert config["parameters"]["seed"] == 1 and config["parameters"]["overrides"]["train.seed"] == 1
+    for arm in ("control", "oracle"):
+        assert (seeded.root / "fidelity" / arm / "round-01" / "train" / "predictor.pt").is_file()
+    for arm in ("control", "oracle"):  # Φ₀ as the seeded run scores it (its evaluation samples with seed 1 + i)
+        assert figures[f"mcd_{arm}_seed1_iter0"] == figures["mcd_loop_seed1_iter0"]
+    for arm in ("loop", "control", "oracle"):
+        pair = (figures[f"mcd_{arm}_iter1"], figures[f"mcd_{arm}_seed1_iter1"])
+        assert figures[f"mcd_{arm}_seeds_mean"] == pytest.approx(sum(pair) / 2, abs=2e-3)
+        assert figures[f"mcd_{arm}_seeds_sd"] == pytest.approx(abs(pair[0] - pair[1]) / math.sqrt(2), abs=2e-3)
     saved = json.loads((out / "fidelity.json").read_text())
+    assert "over 2 seeds from the same Φ₀" in saved["notes"]
     assert "with 12 collection images the oracle reaches" in saved["notes"]
     assert "perfect oracle over a perfect control" in saved["notes"]
     assert "on the collection images it was trained on" in saved["notes"]
@@ -181,6 +195,27 @@ def test_training_publishes_its_progress_on_the_dashboard(bench_run):
     assert training, "no training progress artifact"
     assert all(float(a.data) == 100.0 for a in training)  # every train task of the run finished
     assert any("iter-01/train" in a.description and "steps/s" in a.description for a in training)
+
+
+def test_seed_figures_and_their_verdict_by_hand():
+    arms = {"loop": {2: {"mcd_cm": 10.0}}, "control": {2: {"mcd_cm": 11.0}}, "oracle": {2: {"mcd_cm": 8.0}},
+            "loop_seed3": {2: {"mcd_cm": 12.0}}, "control_seed3": {2: {"mcd_cm": 11.0}},
+            "oracle_seed3": {2: {"mcd_cm": 8.0}}}
+    assert B.seed_figures([0], arms, 2) == {} and B.seed_line({}) is None
+    f = B.seed_figures([0, 3], arms, 2)
+    assert f["seeds"] == 2 and f["mcd_loop_seeds_mean"] == 11.0 and f["mcd_loop_seeds_sd"] == pytest.approx(1.414, abs=1e-3)
+    assert f["mcd_control_seeds_sd"] == 0.0 and f["loop_minus_control_seeds_mean"] == 0.0
+    assert f["loop_minus_control_seeds_sd"] == pytest.approx(1.414, abs=1e-3) and f["loop_ahead_of_control_seeds"] == 1
+    assert f["headroom_seeds_mean"] == pytest.approx(8.0 / 11.0, abs=1e-3) and f["loop_gap_recovered_seeds_mean"] == 0.0
+    line = B.seed_line(f)
+    assert line.startswith("over 2 seeds from the same Φ₀ (mean ± sd of the last iteration's test mCD, cm): loop "
+                           "11.00 ± 1.41, control 11.00 ± 0.00, oracle 8.00 ± 0.00")
+    assert "ahead in 1 of 2 seeds" in line and line.endswith("headroom of the means 0.727, share of the gap recovered 0%")
+    lines = B.verdict_lines({"iterations": 2, "mcd_loop_iter2": 10.0, "mcd_control_iter2": 11.0,
+                             "mcd_oracle_iter2": 8.0, **f})
+    assert lines[-2] == line and lines[-1].startswith("paper's ablation ordering")
+    with pytest.raises(SystemExit):
+        B.main(["--seeds", "1", "2"])   # seed 0 (the benchmark's own arms) must be among them
 
 
 def test_verdicts_follow_the_recorded_figures():
