@@ -224,8 +224,7 @@ def ranking_figures(layout, iteration: int, gt: dict, rig) -> dict[str, float]:
                                           shards.read_table(filter_dir).to_pylist())
     figures = {"rank_base_rate": round(ranking.pop("all")["base_rate"] or float("nan"), 3)}
     for column, entry in ranking.items():
-        if math.isfinite(entry["rho"]):  # NaN where a column is constant (or absent: filter shards of older runs)
-            figures[f"rank_rho_{column}"] = round(entry["rho"], 2)
+        figures[f"rank_rho_{column}"] = round(entry["rho"], 2)
         figures.update({f"rank_precision_q{k.split('@')[1]}_{column}": round(v, 2)
                         for k, v in entry.items() if k.startswith("precision@") and v is not None})
     return figures
