@@ -70,12 +70,16 @@ def read_masks(collection_dir: str | os.PathLike) -> dict[str, np.ndarray]:
     ``collection`` stage: the crops at the model's resolution)."""
     masks: dict[str, np.ndarray] = {}
     for i in shards.list_shards(collection_dir):
-        table, arrays = shards.read_shard(collection_dir, i)
-        if "mask" not in arrays:
-            raise ValueError(f"collection shard {i} of {collection_dir} has no 'mask' array")
-        masks.update(zip((str(s) for s in table.column("sample_id").to_pylist()),
-                         (np.asarray(m, dtype=bool) for m in arrays["mask"])))
+        masks.update(_shard_masks(collection_dir, i))
     return masks
+
+
+def _shard_masks(collection_dir: str | os.PathLike, index: int) -> dict[str, np.ndarray]:
+    """Sample id → mask of collection shard ``index``; a clear error naming the shard when it has no masks."""
+    table, arrays = shards.read_shard(collection_dir, index)
+    if "mask" not in arrays:
+        raise ValueError(f"collection shard {index} of {collection_dir} has no 'mask' array")
+    return {str(s): np.asarray(m, dtype=bool) for s, m in zip(table.column("sample_id").to_pylist(), arrays["mask"])}
 
 
 def predicted_mask(occupancy: np.ndarray, threshold: float = MIN_OCCUPANCY) -> np.ndarray:
@@ -167,10 +171,7 @@ def evaluate_collection_shard(predictions_dir: str | os.PathLike, index: int, co
     output: occupancy in its npz), the masks of collection shard ``index`` and the fits of fit shard ``index`` of
     ``fit_dir`` (None or a folder without that shard: no fits) → shard ``index`` of ``out_dir``."""
     table, arrays = shards.read_shard(predictions_dir, index)
-    coll, coll_arrays = shards.read_shard(collection_dir, index)
-    if "mask" not in coll_arrays:
-        raise ValueError(f"collection shard {index} of {collection_dir} has no 'mask' array")
-    masks = {str(s): m for s, m in zip(coll.column("sample_id").to_pylist(), coll_arrays["mask"])}
+    masks = _shard_masks(collection_dir, index)
     fits = None
     if fit_dir is not None and index in shards.list_shards(fit_dir):
         fits = shards.read_shard(fit_dir, index, with_arrays=False)[0].to_pylist()

@@ -142,14 +142,10 @@ def quality_rows(fit_rows: Sequence[Mapping[str, Any]], rig, canonical_points: S
             row["canonical_chamfer_cm"] = float("nan")
         row["pose_joint_dist_cm"] = float(pose[i])
         out.append(row)
-    if masks is not None:
-        if len(masks) != len(fit_rows):
-            raise ValueError(f"masks: expected {len(fit_rows)} entries (one per fit row), got {len(masks)}")
-        for row, (iou, gain) in zip(out, mask_agreement(fit_rows, rig, masks)):
-            row["mask_iou"], row["mask_iou_gain"] = iou, gain
-    else:
-        for row in out:
-            row["mask_iou"] = row["mask_iou_gain"] = float("nan")
+    if masks is not None and len(masks) != len(fit_rows):
+        raise ValueError(f"masks: expected {len(fit_rows)} entries (one per fit row), got {len(masks)}")
+    for row, (iou, gain) in zip(out, mask_agreement(fit_rows, rig, masks or [None] * len(fit_rows))):
+        row["mask_iou"], row["mask_iou_gain"] = iou, gain
     return out
 
 

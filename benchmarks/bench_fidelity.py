@@ -10,7 +10,9 @@ each evaluated on the same test split with the loop's own metrics (``bat3r_core.
   camera, ray-cast through the collection's crop) — what perfect pseudo-labels would give.
 
 ``--ablations`` adds the paper's ablations of the loop, each a bootstrap run starting from the same Φ₀
-(``init_predictor``): no fitting regularisation, no view augmentation, no pseudo-label filter.
+(``init_predictor``): no fitting regularisation, no view augmentation, no pseudo-label filter. ``--seeds 0 S ...``
+repeats the three arms from the same Φ₀ with each extra seed (``seed_arms``) and reports their mean, spread and the
+paired loop − control difference (``seed_figures``).
 
 Two figures say what limits the headroom when there is little: the **map floors** (``map_floors``: the test mCD of
 exact point maps and of exact rest-pose maps at the run's crop resolution, the best any oracle and any control can
@@ -26,7 +28,8 @@ Results: ``benchmarks/results/<record-as>.json`` (test mCD, % > 5 cm and ΔR per
 ``oracle / control`` and the fraction of the control → oracle gap the loop recovers), ``RESULTS.md`` and a plot
 ``benchmarks/results/<record-as>.png``.
 
-    python benchmarks/bench_fidelity.py [--preset bench] [--run-name bench] [--ablations] [--set KEY=VALUE ...]
+    python benchmarks/bench_fidelity.py [--preset bench] [--run-name bench] [--ablations] [--seeds 0 1 2]
+                                        [--set KEY=VALUE ...]
 
 Measured: 48 min on 2 AMD EPYC cores (65 min on 2 Intel Xeon cores) at the ``bench`` preset without ablations
 (collection and test split rendered from scratch); each ablation adds about 20 min, ``--oracle-sizes 1536`` 14 min.

@@ -151,40 +151,55 @@ def pose_quality(rows: list[dict], gt: dict, rig, errors: tuple[list[dict], list
             "pct_better_than_rest": float(100 * np.mean(f < n))}
 
 
+def refit_quality(rows: list[dict], instances: list[PointCloudInstance], rig, masks: dict | None = None
+                  ) -> list[dict]:
+    """The quality columns of these fits (``pseudo_labels.quality_rows``), with the canonical points they were
+    fitted to and (``masks``: sample id → crop mask) the masks of the mask columns."""
+    from bat3r_core import pseudo_labels
+
+    return pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances],
+                                      None if masks is None else [masks.get(inst.sample_id) for inst in instances])
+
+
 def refit_filter_precision(rows: list[dict], instances: list[PointCloudInstance], gt: dict, rig, config,
                            errors: tuple[list[dict], list[dict]] | None = None,
-                           masks: dict | None = None) -> dict[str, float | None]:
+                           quality: list[dict] | None = None) -> dict[str, float | None]:
     """The run's pseudo-label filter (``config``: a ``PseudoLabelFilterConfig``) applied to these fits — their own
-    quality columns, with the canonical points they were fitted to and (``masks``: sample id → crop mask) the masks
-    of the mask columns — scored against the truth (``bat3r_core.pseudo_labels.filter_precision``: precision,
-    recall, base rate of the kept set). ``errors``: ``pose_errors(rows, gt, rig)`` when already computed."""
+    quality columns (``quality``: ``refit_quality`` of them when already computed; else without masks) — scored
+    against the truth (``bat3r_core.pseudo_labels.filter_precision``: precision, recall, base rate of the kept
+    set). ``errors``: ``pose_errors(rows, gt, rig)`` when already computed."""
     from bat3r_core import pseudo_labels
 
     fitted, rest = errors if errors is not None else pose_errors(rows, gt, rig)
-    quality = pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances],
-                                         None if masks is None else [masks.get(inst.sample_id) for inst in instances])
+    quality = quality if quality is not None else refit_quality(rows, instances, rig)
     return pseudo_labels.filter_precision(fitted, rest, pseudo_labels.filter_fits(quality, config))
 
 
-def refit_ranking(rows: list[dict], instances: list[PointCloudInstance], gt: dict, rig,
-                  errors: tuple[list[dict], list[dict]], masks: dict | None = None) -> dict[str, float]:
-    """How each quality column ranks these fits against the truth (``pseudo_labels.score_ranking`` of their own
-    quality columns): ``rank_rho_<column>`` and ``rank_precision_q0.25_<column>``, as ``ranking_figures`` gives them
-    for the run's own fits."""
+def _ranking_figures(ranking: dict[str, dict]) -> dict[str, float]:
+    """``rank_rho_<column>`` and ``rank_precision_q<q>_<column>`` of a ``pseudo_labels.score_ranking`` result (its
+    ``"all"`` entry left out); a ρ is NaN where a column is constant (or absent) over the fits."""
+    figures: dict[str, float] = {}
+    for column, entry in ranking.items():
+        if column == "all":
+            continue
+        figures[f"rank_rho_{column}"] = round(entry["rho"], 2)
+        figures.update({f"rank_precision_q{k.split('@')[1]}_{column}": round(v, 2)
+                        for k, v in entry.items() if k.startswith("precision@") and v is not None})
+    return figures
+
+
+def refit_ranking(errors: tuple[list[dict], list[dict]], quality: list[dict]) -> dict[str, float]:
+    """How each quality column ranks these fits against the truth (``pseudo_labels.score_ranking`` of their
+    ``refit_quality``; ``errors``: their ``pose_errors``): ``rank_rho_<column>`` and ``rank_precision_q0.25_<column>``,
+    as ``ranking_figures`` gives them for the run's own fits."""
     from bat3r_core import pseudo_labels
 
-    fitted, rest = errors
-    quality = pseudo_labels.quality_rows(rows, rig, [inst.canonical_points for inst in instances],
-                                         None if masks is None else [masks.get(inst.sample_id) for inst in instances])
-    ranking = pseudo_labels.score_ranking(fitted, rest, quality, quantiles=(0.25,))
-    ranking.pop("all")
-    out = {}
-    for column, entry in ranking.items():
-        if math.isfinite(entry["rho"]):  # NaN where a column is constant over these fits
-            out[f"rank_rho_{column}"] = round(entry["rho"], 2)
-        if entry["precision@0.25"] is not None:
-            out[f"rank_precision_q0.25_{column}"] = round(entry["precision@0.25"], 2)
-    return out
+    return _ranking_figures(pseudo_labels.score_ranking(*errors, quality, quantiles=(0.25,)))
+
+
+def _finite(figures: dict[str, float]) -> dict[str, float]:
+    """``figures`` without the NaN ones (a ρ over a constant column): what ``record`` accepts."""
+    return {k: v for k, v in figures.items() if math.isfinite(v)}
 
 
 PRECISION_GOAL = 0.8
@@ -222,12 +237,7 @@ def ranking_figures(layout, iteration: int, gt: dict, rig) -> dict[str, float]:
     ranking = pseudo_labels.score_ranking(pq.read_table(errors).to_pylist(),
                                           pseudo_labels.rest_pose_errors(fits, gt, rig),
                                           shards.read_table(filter_dir).to_pylist())
-    figures = {"rank_base_rate": round(ranking.pop("all")["base_rate"] or float("nan"), 3)}
-    for column, entry in ranking.items():
-        figures[f"rank_rho_{column}"] = round(entry["rho"], 2)
-        figures.update({f"rank_precision_q{k.split('@')[1]}_{column}": round(v, 2)
-                        for k, v in entry.items() if k.startswith("precision@") and v is not None})
-    return figures
+    return {"rank_base_rate": round(ranking["all"]["base_rate"] or float("nan"), 3), **_ranking_figures(ranking)}
 
 
 def changed_fitting(config, changes: dict):
@@ -293,11 +303,12 @@ def main(argv: list[str] | None = None) -> dict:
         rows = fit_rows(fit_batch(asset, fitted, fitting))
         errors = pose_errors(rows, gt, rig)
         quality = pose_quality(rows, gt, rig, errors)
+        refit = refit_quality(rows, fitted, rig, masks)
         if not settings.ablations.no_pseudo_label_filter:  # what the run's filter would keep of these fits
-            check = refit_filter_precision(rows, fitted, gt, rig, settings.pseudo_label_filter, errors, masks)
+            check = refit_filter_precision(rows, fitted, gt, rig, settings.pseudo_label_filter, errors, refit)
             figures.update({f"refit_filter_{k}_{name}": round(float(check[k]), 3)
                             for k in ("precision", "recall", "base_rate") if check[k] is not None})
-        ranked_refit = refit_ranking(rows, fitted, gt, rig, errors, masks)
+        ranked_refit = _finite(refit_ranking(errors, refit))
         figures.update({f"refit_{k}_{name}": v for k, v in ranked_refit.items()})
         figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
         figures[f"pct_better_than_rest_{name}"] = round(quality["pct_better_than_rest"], 1)
@@ -318,12 +329,12 @@ def main(argv: list[str] | None = None) -> dict:
         f"{k[len('median_'):]} {v}" for k, v in figures.items()
         if k.startswith("median_") and not k.startswith(("median_fit_", "median_rest_"))))
     figures.update(filter_figures(layout, args.iteration))
-    ranked = ranking_figures(layout, args.iteration, gt, rig)
+    ranked = _finite(ranking_figures(layout, args.iteration, gt, rig))
     figures.update(ranked)
     if ranked:
         best = max((k for k in ranked if k.startswith("rank_precision_q0.25_")), key=lambda k: ranked[k])
         print(f"the run's fits ranked by each quality column: best quarter by {best[len('rank_precision_q0.25_'):]} "
-              f"beats the rest pose for {ranked[best]:.0%} (base rate {ranked['rank_base_rate']:.0%}); Spearman rho "
+              f"beats the rest pose for {ranked[best]:.0%} (base rate {ranked.get('rank_base_rate', float('nan')):.0%}); Spearman rho "
               "with fit-minus-rest error: " + ", ".join(f"{k[len('rank_rho_'):]} {v:+.2f}" for k, v in ranked.items()
                                                       if k.startswith("rank_rho_")))
     verdicts = []

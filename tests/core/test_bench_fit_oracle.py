@@ -205,3 +205,17 @@ def test_ranking_figures_from_a_runs_fit_filter_and_error_files(tmp_path, scene,
     assert figures["rank_precision_q0.5_residual_chamfer_cm"] == 1.0
     assert figures["rank_precision_q0.5_inlier_ratio"] == 0.0
     assert np.isnan(figures["rank_rho_residual_chamfer_cm"])  # two fits: too few for a rank correlation
+
+
+def test_refit_ranking_figures_match_the_runs_own_and_nan_is_left_out_of_the_record():
+    """refit_ranking names its figures as ranking_figures does; a ρ over a constant column is NaN there and
+    ``_finite`` leaves it out of what ``record`` gets."""
+    fitted = [{"sample_id": s, "vertex_err_cm": e} for s, e in (("a", 1.0), ("b", 9.0), ("c", 2.0), ("d", 8.0))]
+    rest = [{"sample_id": s, "vertex_err_cm": 5.0} for s in "abcd"]
+    quality = [{"sample_id": s, "residual_chamfer_cm": r, "inlier_ratio": 0.5} for s, r in zip("abcd", (1, 4, 2, 3))]
+    got = B.refit_ranking((fitted, rest), quality)
+    assert got["rank_precision_q0.25_residual_chamfer_cm"] == 1.0   # the best quarter (a) beats the rest pose
+    assert got["rank_rho_residual_chamfer_cm"] == pytest.approx(1.0)  # ranks 1, 4, 2, 3; deltas -4, 4, -3, 3 too
+    assert np.isnan(got["rank_rho_inlier_ratio"])                    # constant column
+    kept = B._finite(got)
+    assert "rank_rho_inlier_ratio" not in kept and kept["rank_rho_residual_chamfer_cm"] == pytest.approx(1.0)
