@@ -260,8 +260,9 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
         :class:`ShardResult`. The npz holds ``rgb (N, H, W, 3) uint8``, ``mask (N, H, W) bool``,
         ``P``/``Q (N, H, W, K, 3) float16`` (P relative to the object depth, see :mod:`bat3r_core.pointmaps`),
         ``occupancy (N, H, W, K) bool``, ``object_depth (N,) float32``, ``K_intrinsics (N, 3, 3) float32``; rows
-        that failed hold zeros. Parquet rows: the job's columns plus ``status``, ``reason``, ``render_seconds``,
-        ``mask_iou``.
+        that failed hold zeros. Parquet rows: the job's columns plus ``status``, ``reason``, ``mask_iou``. The
+        same jobs give the same bytes (Cycles is seeded per job; no time is stored), so a re-rendered shard keeps
+        the cache keys of every stage that reads it; the timings are in the result and the progress lines.
     """
     from bat3r_core.pointmaps import encode_float16, storage_dtype
     from bat3r_core.rig_io import load_rig
@@ -336,7 +337,7 @@ def render_shard(jobs: Sequence[RenderJob], assets: SceneAssets, out_dir: str | 
             except (OSError, ValueError, KeyError) as e:
                 status, reason = "failed", f"labelling failed: {type(e).__name__}: {e}"
         row = job_to_dict(job)
-        row.update(status=status, reason=reason, render_seconds=float(rec.get("seconds", 0.0)), mask_iou=iou)
+        row.update(status=status, reason=reason, mask_iou=iou)  # no wall times: the shard's bytes are its content
         rows.append(row)
     paths = write_shard(out_dir, shard_index, rows, arrays)
     import shutil

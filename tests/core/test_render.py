@@ -22,7 +22,7 @@ from bat3r_core.config_utils import ConfigError
 from bat3r_core.render.config import RenderConfig, SceneAssets, render_config
 from bat3r_core.render.jobs import (JobSchemaError, RenderJob, job_from_dict, job_to_dict, jobs_from_table,
                                     jobs_to_table, read_jobs, write_jobs)
-from bat3r_core.shards import read_shard
+from bat3r_core.shards import read_shard, shard_paths
 from bat3r_core.skinning import skin
 from bat3r_core.viewpoints import frame_camera, identity_frame
 
@@ -291,6 +291,11 @@ def test_same_seed_same_image(tmp_path, toy_rig, toy_glb):
     np.testing.assert_array_equal(one["rgb"][0], one["rgb"][2])
     np.testing.assert_array_equal(one["rgb"][0], two["rgb"][0])
     assert np.abs(one["rgb"][0].astype(int) - one["rgb"][1].astype(int)).max() > 10, "another seed, other noise"
+    # the same shard rendered again, seconds later, is the same bytes: the cache keys downstream of it hold
+    render_shard([a, c, b], SceneAssets(str(toy_glb)), tmp_path / "again", 0, cfg, rig=toy_rig)
+    first, again = shard_paths(tmp_path, 0), shard_paths(tmp_path / "again", 0)
+    assert first.npz.read_bytes() == again.npz.read_bytes()
+    assert first.parquet.read_bytes() == again.parquet.read_bytes()
 
 
 @pytest.mark.blender
