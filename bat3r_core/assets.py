@@ -86,8 +86,11 @@ def prepare_asset(source: str | os.PathLike, out_dir: str | os.PathLike, scale: 
     source = Path(source)
     rig, info = read_any_asset(source, scale, up_axis)
     check_plausible_size(rig, source, scale)
-    key = hashlib.sha256(json.dumps({"file": _file_digest(source), "scale": float(scale),
-                                     "up_axis": info.up_axis, "version": ASSET_FORMAT_VERSION}).encode())
+    described = {"file": _file_digest(source), "scale": float(scale), "up_axis": info.up_axis,
+                 "version": ASSET_FORMAT_VERSION}
+    if info.dequantization is not None:  # read at the integer grid's scale before this was understood
+        described["dequantization"] = list(info.dequantization)
+    key = hashlib.sha256(json.dumps(described).encode())
     out = Path(out_dir) / f"{name or source.stem}-{key.hexdigest()[:12]}.glb"
     if not out.is_file():
         save_rig_glb(rig, out, texture=info.texture)

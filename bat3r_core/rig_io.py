@@ -13,6 +13,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pygltflib
@@ -34,10 +35,33 @@ _COMPONENT = {
 }
 _NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 _TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN = 4, 5, 6
+_NOT_SURFACES = {0: "POINTS", 1: "LINES", 2: "LINE_LOOP", 3: "LINE_STRIP"}
 _MAX_INFLUENCE_SETS = 2  # JOINTS_0/1, WEIGHTS_0/1: up to 8 influences per vertex
 
+DRACO = "KHR_draco_mesh_compression"
+"""Draco-compressed geometry: the accessors hold no data; :func:`read_any_asset` decodes it through Blender."""
+QUANTIZATION = "KHR_mesh_quantization"
+"""Integer vertex attributes; a skinned mesh's dequantization sits in the inverse bind matrices (see read_asset)."""
+_NOT_READABLE = {
+    "EXT_meshopt_compression": "meshoptimizer-compressed buffers, which neither bat3r nor Blender's importer decode",
+    "KHR_meshopt_compression": "meshoptimizer-compressed buffers, which neither bat3r nor Blender's importer decode",
+}
+_DECODE_HINT = ("write it uncompressed first, e.g. `npx @gltf-transform/cli copy IN.glb OUT.glb` "
+                "(gltf-transform decodes meshopt and Draco and writes plain buffers)")
 
-def _read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int, path: Path) -> np.ndarray:
+
+def _read_accessor(gltf: pygltflib.GLTF2, blob: bytes | Sequence[bytes | None], index: int, path: Path
+                   ) -> np.ndarray:
+    """Accessor ``index`` as an (count, components) array. blob: the bytes of each buffer (one ``bytes``: buffer 0
+    only, as a GLB's binary chunk)."""
+    blobs = [blob] if isinstance(blob, (bytes, bytearray, memoryview)) or blob is None else list(blob)
+
+    def buffer_of(view: pygltflib.BufferView) -> bytes:
+        data = blobs[view.buffer] if 0 <= view.buffer < len(blobs) else None
+        if data is None:
+            raise RigError(f"{path}: accessor {index} reads buffer {view.buffer}, which has no data")
+        return data
+
     acc = gltf.accessors[index]
     dtype = np.dtype(_COMPONENT[acc.componentType]).newbyteorder("<")
     ncomp = _NCOMP[acc.type]
@@ -45,8 +69,7 @@ def _read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int, path: Path) -
         out = np.zeros((acc.count, ncomp), dtype=dtype)
     else:
         view = gltf.bufferViews[acc.bufferView]
-        if view.buffer != 0:
-            raise RigError(f"{path}: only single-buffer glTF/GLB files are supported (accessor {index})")
+        blob = buffer_of(view)
         start = (view.byteOffset or 0) + (acc.byteOffset or 0)
         elem = dtype.itemsize * ncomp
         stride = view.byteStride or elem
@@ -60,17 +83,15 @@ def _read_accessor(gltf: pygltflib.GLTF2, blob: bytes, index: int, path: Path) -
     if acc.sparse is not None:  # a few replaced elements (Blender writes morph targets this way)
         sp = acc.sparse
 
-        def view_bytes(bv: int, offset: int | None) -> int:
+        def view_bytes(bv: int, offset: int | None) -> tuple[bytes, int]:
             v = gltf.bufferViews[bv]
-            if v.buffer != 0:
-                raise RigError(f"{path}: only single-buffer glTF/GLB files are supported (accessor {index})")
-            return (v.byteOffset or 0) + (offset or 0)
+            return buffer_of(v), (v.byteOffset or 0) + (offset or 0)
 
         idx_dtype = np.dtype(_COMPONENT[sp.indices.componentType]).newbyteorder("<")
-        idx = np.frombuffer(blob, dtype=idx_dtype, count=sp.count,
-                            offset=view_bytes(sp.indices.bufferView, sp.indices.byteOffset)).astype(np.int64)
-        values = np.frombuffer(blob, dtype=dtype, count=sp.count * ncomp,
-                               offset=view_bytes(sp.values.bufferView, sp.values.byteOffset)).reshape(sp.count, ncomp)
+        data, at = view_bytes(sp.indices.bufferView, sp.indices.byteOffset)
+        idx = np.frombuffer(data, dtype=idx_dtype, count=sp.count, offset=at).astype(np.int64)
+        data, at = view_bytes(sp.values.bufferView, sp.values.byteOffset)
+        values = np.frombuffer(data, dtype=dtype, count=sp.count * ncomp, offset=at).reshape(sp.count, ncomp)
         if idx.size and (idx.min() < 0 or idx.max() >= acc.count):
             raise RigError(f"{path}: sparse accessor {index} replaces element {idx.max()} of {acc.count}")
         out[idx] = values
@@ -104,8 +125,7 @@ def _triangles(mode: int, idx: np.ndarray, path: Path, prim_label: str) -> np.nd
     if mode == _TRIANGLE_FAN:
         return np.asarray([(idx[0], idx[i], idx[i + 1]) for i in range(1, len(idx) - 1)],
                           dtype=np.int64).reshape(-1, 3)
-    names = {0: "POINTS", 1: "LINES", 2: "LINE_LOOP", 3: "LINE_STRIP"}
-    raise RigError(f"{path}: {prim_label} has primitive mode {names.get(mode, mode)}, which cannot be "
+    raise RigError(f"{path}: {prim_label} has primitive mode {_NOT_SURFACES.get(mode, mode)}, which cannot be "
                    f"triangulated; provide a triangle (or quad/polygon, via Blender) mesh")
 
 
@@ -188,6 +208,9 @@ class AssetInfo:
             0 for a file saved at its bind pose). The rest pose never uses it.
         bind_scale: (min, max) scale of the joints' bind frames relative to the skeleton's parent node (the
             singular values of the inverse inverse-bind matrices; (1, 1) for rigid bind frames).
+        dequantization: for a ``KHR_mesh_quantization`` file whose inverse bind matrices carry the dequantization
+            of its integer positions, the ``(scale, x, y, z)`` offset applied to place the bind pose as the file's
+            scene shows it (in file units, before ``scale``); None otherwise.
     """
 
     path: str
@@ -205,6 +228,7 @@ class AssetInfo:
     notes: tuple[str, ...]
     bind_scale: tuple[float, float] = (1.0, 1.0)
     node_pose_deg: float = 0.0
+    dequantization: tuple[float, float, float, float] | None = None
 
 
 class _Gltf:
@@ -216,28 +240,35 @@ class _Gltf:
             self.gltf = pygltflib.GLTF2().load(str(path))
         except Exception as e:  # pygltflib raises assorted errors on corrupt files
             raise RigError(f"{path}: not a readable glTF/GLB file ({type(e).__name__}: {e})") from e
-        self.blob = self._blob()
+        self.blobs = self._blobs()
         self.parent = _parents_of_nodes(self.gltf, path)
         self._world: dict[int, np.ndarray] = {}
 
-    def _blob(self) -> bytes | None:
+    def _blobs(self) -> list[bytes | None]:
+        """The bytes of every buffer: a GLB's binary chunk, a data URI, or a file beside the .gltf (None for a buffer
+        with neither; reading it is an error then)."""
         gltf = self.gltf
-        blob = gltf.binary_blob()
-        if blob is None and gltf.buffers:
-            uri = gltf.buffers[0].uri or ""
-            if uri.startswith("data:"):
+        out: list[bytes | None] = []
+        for k, buffer in enumerate(gltf.buffers or []):
+            uri = buffer.uri or ""
+            if not uri:
+                out.append(gltf.binary_blob() if k == 0 else None)
+            elif uri.startswith("data:"):
                 import base64
-                blob = base64.b64decode(uri.split(",", 1)[1])
-            elif uri:
-                f = self.path.parent / uri
+
+                out.append(base64.b64decode(uri.split(",", 1)[1]))
+            else:
+                from urllib.parse import unquote
+
+                f = self.path.parent / unquote(uri)
                 if not f.is_file():
                     raise RigError(f"{self.path}: its buffer file {f} does not exist (keep the .bin beside the "
                                    f".gltf)")
-                blob = f.read_bytes()
-        return blob
+                out.append(f.read_bytes())
+        return out
 
     def accessor(self, index: int) -> np.ndarray:
-        return _read_accessor(self.gltf, self.blob, index, self.path)
+        return _read_accessor(self.gltf, self.blobs, index, self.path)
 
     def world(self, i: int) -> np.ndarray:
         """(4, 4) world matrix of node ``i`` at the file's node TRS (animations not applied)."""
@@ -266,7 +297,10 @@ class _Gltf:
         img = self.gltf.images[index]
         if img.bufferView is not None:
             view = self.gltf.bufferViews[img.bufferView]
-            data = self.blob[(view.byteOffset or 0):(view.byteOffset or 0) + view.byteLength]
+            blob = self.blobs[view.buffer] if view.buffer < len(self.blobs) else None
+            if blob is None:
+                return None, f"image {index} reads buffer {view.buffer}, which has no data"
+            data = blob[(view.byteOffset or 0):(view.byteOffset or 0) + view.byteLength]
             source = f"embedded image {index}"
         elif img.uri and img.uri.startswith("data:"):
             import base64
@@ -349,9 +383,10 @@ def _skin_frames(g: _Gltf, skin: pygltflib.Skin) -> tuple[np.ndarray, np.ndarray
         raise RigError(f"{g.path}: skin '{skin.name}' has a singular inverse bind matrix") from None
 
 
-def _node_pose(g: _Gltf, joints: np.ndarray, ibm: np.ndarray) -> tuple[float, float]:
+def _node_pose(g: _Gltf, joints: np.ndarray, ibm: np.ndarray) -> tuple[float, float, np.ndarray]:
     """How the file's node pose relates to its bind pose: (scale of the skeleton's root joint at the node pose
-    relative to its bind frame, largest angle in degrees between two joints' ``J_j @ IBM_j``).
+    relative to its bind frame, largest angle in degrees between two joints' ``J_j @ IBM_j``, the root joint's
+    ``J_root @ IBM_root``: where the file's scene places the mesh as stored).
 
     In the bind pose every ``J_j @ IBM_j`` is the same matrix (the identity when the scene graph above the skeleton
     is baked into the inverse bind matrices): a non-zero angle means the file was saved posed or animated.
@@ -363,7 +398,7 @@ def _node_pose(g: _Gltf, joints: np.ndarray, ibm: np.ndarray) -> tuple[float, fl
     scale = float(np.cbrt(abs(np.linalg.det(ref[:3, :3]))))
     rel = np.linalg.inv(ref[:3, :3])[None] @ m[:, :3, :3]
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return scale, float(np.degrees(np.arccos(cos)).max())
+    return scale, float(np.degrees(np.arccos(cos)).max()), ref
 
 
 def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y") -> tuple[Rig, AssetInfo]:
@@ -389,6 +424,14 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
         raise ValueError(f"asset scale must be a positive number (file units -> metres), got {scale!r}")
     g = _Gltf(path)
     gltf = g.gltf
+    required = set(gltf.extensionsRequired or [])
+    unreadable = sorted(required & set(_NOT_READABLE))
+    if unreadable:
+        raise RigError(f"{path}: the file requires {unreadable[0]} ({_NOT_READABLE[unreadable[0]]}); "
+                       f"{_DECODE_HINT}")
+    if DRACO in required:
+        raise RigError(f"{path}: its meshes are Draco-compressed ({DRACO}), which this reader does not decode; "
+                       f"read it with read_any_asset/load_rig (they decode it through Blender), or {_DECODE_HINT}")
     if not gltf.skins:
         raise RigError(f"{path}: the mesh has no skin (no glTF 'skins'); bat3r needs a rigged, skinned mesh "
                        f"(armature + vertex weights)")
@@ -412,10 +455,22 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     above = next((g.parent[int(n)] for n in joint_nodes if g.parent[int(n)] not in jset), -1)
     frame_above = g.world(above) if above != -1 else np.eye(4)
     bind_sv = np.linalg.svd((np.linalg.inv(frame_above) @ np.linalg.inv(skin_ibm))[:, :3, :3], compute_uv=False)
-    pose_scale, pose_angle = _node_pose(g, joint_nodes, skin_ibm)
+    pose_scale, pose_angle, root_frame = _node_pose(g, joint_nodes, skin_ibm)
     jpos = {int(n): k for k, n in enumerate(joint_nodes)}
     u = np.eye(4)
     u[:3, :3] = float(scale) * up_axis_rotation(up_axis)
+    dequantization = None
+    if QUANTIZATION in set(gltf.extensionsUsed or []) and abs(pose_scale - 1.0) > 1e-3:
+        # A quantizing exporter (gltfpack, gltf-transform) stores a skinned mesh's positions as integers and folds
+        # their dequantization (a uniform scale and an offset) into the inverse bind matrices: the mesh "as
+        # stored" is the integer grid. Place the bind pose as the file's scene shows it at the root joint, scale
+        # and offset only (a rotation there would be the root's own pose, not part of the mesh).
+        dq = np.eye(4)
+        dq[:3, :3] *= pose_scale
+        dq[:3, 3] = root_frame[:3, 3]
+        u = u @ dq
+        dequantization = (float(pose_scale), *(float(x) for x in root_frame[:3, 3]))
+        bind_sv = bind_sv * pose_scale  # the bind frames once dequantized
     bind = u @ bind  # joint bind frames in bat3r's canonical frame (may carry the file's scale)
     parents = []
     for n in joint_nodes:
@@ -458,13 +513,17 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
         n_before = offset
         for pi, prim in enumerate(mesh.primitives):
             label = f"mesh '{mesh.name}' primitive {pi} (node '{label_node}')"
+            mode = _TRIANGLES if prim.mode is None else prim.mode
+            if mode in _NOT_SURFACES:  # guide lines, hair strands, point helpers: nothing a camera sees as skin
+                report.append((label_node, f"left out: primitive {pi} of mesh '{mesh.name}' draws "
+                                           f"{_NOT_SURFACES[mode]}, not a surface"))
+                continue
             pos, nt = _primitive_positions(g, mesh, node, prim, label)
             n_targets += nt
             ws = getattr(node, "weights", None) or mesh.weights or []
             morph_w.extend(float(x) for x in list(ws)[:nt])
             idx = (g.accessor(prim.indices).reshape(-1).astype(np.int64) if prim.indices is not None
                    else np.arange(len(pos)))
-            mode = _TRIANGLES if prim.mode is None else prim.mode
             tri = _triangles(mode, idx, path, label)
             if tri.size and tri.max() >= len(pos):
                 raise RigError(f"{path}: {label} indexes vertex {tri.max()} of {len(pos)}")
@@ -496,7 +555,9 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
             offset += len(pos)
         report.append((label_node, f"{how}: {offset - n_before} vertices"))
     if not verts:
-        raise RigError(f"{path}: no usable mesh (skinned, or rigidly below a joint) in the default scene")
+        why = "; ".join(f"'{n}': {what}" for n, what in report)
+        raise RigError(f"{path}: no usable mesh (a skinned surface, or one rigidly below a joint) in the default "
+                       f"scene{': ' + why if why else ''}")
     uv = None
     if has_uv and uvs:
         uv = np.concatenate(uvs)
@@ -521,7 +582,10 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
         if len(material_faces) > 1:
             notes.append(f"{len(material_faces)} materials; the base colour of the one on the most faces "
                          f"(material {dominant}) is used for the whole mesh")
-    if abs(pose_scale - 1.0) > 1e-3:
+    if dequantization is not None:
+        notes.append(f"{QUANTIZATION}: integer positions dequantized by the scale {pose_scale:.6g} and offset "
+                     f"({', '.join(f'{x:.4g}' for x in dequantization[1:])}) its inverse bind matrices carry")
+    elif abs(pose_scale - 1.0) > 1e-3:
         notes.append(f"the file's scene graph shows the skeleton {pose_scale:.4g}x the size of its bind pose (a "
                      f"transform above the skeleton that its inverse bind matrices do not include); bat3r uses the "
                      f"bind pose: check asset_scale")
@@ -530,7 +594,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                      animations=tuple(a.name or f"animation {k}" for k, a in enumerate(gltf.animations or [])),
                      scale=float(scale), up_axis=str(up_axis).upper(), texture=texture, texture_source=source,
                      notes=tuple(notes), bind_scale=(float(bind_sv.min()), float(bind_sv.max())),
-                     node_pose_deg=pose_angle)
+                     node_pose_deg=pose_angle, dequantization=dequantization)
     return rig, info
 
 
@@ -563,16 +627,27 @@ def _convert_with_blender(path: Path) -> Path:
     return out
 
 
+def _is_draco(path: Path) -> bool:
+    """Whether the glTF/GLB ``path`` requires Draco mesh decompression (False for an unreadable file: read_asset
+    reports that)."""
+    try:
+        return DRACO in (pygltflib.GLTF2().load(str(path)).extensionsRequired or [])
+    except Exception:  # noqa: BLE001 - pygltflib raises assorted errors on corrupt files
+        return False
+
+
 def read_any_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y") -> tuple[Rig, AssetInfo]:
-    """:func:`read_asset` for ``.glb``/``.gltf``, and for ``.fbx``/``.blend`` after conversion through Blender."""
+    """:func:`read_asset` for ``.glb``/``.gltf``, and for ``.fbx``/``.blend`` and Draco-compressed glTF
+    (``KHR_draco_mesh_compression``) after conversion to a plain GLB through Blender
+    (:mod:`bat3r_core.render.blender_convert`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"rigged asset {path} does not exist; provide a rigged, skinned mesh "
                                 f"(.glb/.gltf, or .fbx/.blend converted through Blender)")
     suffix = path.suffix.lower()
-    if suffix in (".glb", ".gltf"):
+    if suffix in (".glb", ".gltf") and not _is_draco(path):
         return read_asset(path, scale, up_axis)
-    if suffix in (".fbx", ".blend"):
+    if suffix in (".fbx", ".blend", ".glb", ".gltf"):
         converted = _convert_with_blender(path)
         rig, info = read_asset(converted, scale, up_axis)
         rig = Rig(name=path.stem, rest_vertices=rig.rest_vertices, faces=rig.faces, joint_names=rig.joint_names,

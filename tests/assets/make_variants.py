@@ -12,6 +12,7 @@ Each NAME writes ``OUT_DIR/NAME.glb`` from a fresh import of ``IN.glb``:
 * ``parent_node``: the armature parented to an empty that is rotated 30° about the up axis and scaled by 0.8.
 * ``morph``: a shape key that swells the head, exported at a default weight of 0.6.
 * ``rigid_child``: an eye (a small sphere) parented to the head bone, not skinned.
+* ``draco``: exported Draco-compressed (``KHR_draco_mesh_compression``), as web-optimised downloads are.
 """
 from __future__ import annotations
 
@@ -109,6 +110,8 @@ def make(src: str, out_dir: Path, name: str) -> Path:
         eye.parent_bone = bone
         bpy.context.view_layer.update()
         eye.matrix_world = world
+    elif name == "draco":
+        options["export_draco_mesh_compression_enable"] = True
     else:
         raise SystemExit(f"unknown variant {name!r}")
     _export(out, **options)

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pygltflib
 import pytest
 import torch
 from scipy.spatial import cKDTree
@@ -70,6 +71,39 @@ def test_variants_share_the_toys_bind_pose(variants, toy_rig):
     with pytest.raises(RigError, match=r"236\.\d m long .*asset_scale: 0.01"):
         load_rig(variants["centimetres"])
     assert _same_points(load_rig(variants["centimetres"], scale=0.01).rest_vertices, rest) < 1e-5
+
+
+@pytest.mark.blender
+def test_quantized_and_compressed_gltf_read_as_their_source(variants, toy_rig, tmp_path):
+    rest, extent = toy_rig.rest_vertices, float(np.ptp(toy_rig.rest_vertices, axis=0).max())
+    joints = {n: toy_rig.rest_transforms[k, :3, 3] for k, n in enumerate(toy_rig.joint_names)}
+
+    def joint_error(rig):
+        return max(float(np.linalg.norm(rig.rest_transforms[k, :3, 3] - joints[n]))
+                   for k, n in enumerate(rig.joint_names))
+
+    # int16 positions over the bounding box, uint8 weights, the dequantization in the inverse bind matrices: the
+    # mesh as stored is the integer grid (extent 2), the scene shows it at the toy's size
+    rig, info = read_asset(variants["quantized"])
+    assert _same_points(rig.rest_vertices, rest) <= extent / 65534 + 1e-6
+    assert joint_error(rig) < 1e-5
+    w = toy_rig.skin_weights  # rounded down to 1/255 but for the largest, which takes the remainder
+    assert np.abs(rig.skin_weights - w).max() <= (np.count_nonzero(w, axis=1).max() + 1) / 255
+    assert info.dequantization is not None and abs(info.dequantization[0] - extent / 2) < 1e-4
+    assert any("KHR_mesh_quantization" in n for n in info.notes)
+    assert prepare_asset(variants["quantized"], tmp_path).rig.num_vertices == toy_rig.num_vertices
+    # Draco: the native reader names it; load_rig decodes it through Blender (14-bit positions by default)
+    with pytest.raises(RigError, match="Draco-compressed .*KHR_draco_mesh_compression"):
+        read_asset(variants["draco"])
+    rig = load_rig(variants["draco"])
+    assert _same_points(rig.rest_vertices, rest) < 2 * extent / 2 ** 14 and joint_error(rig) < 1e-4
+    # meshopt: neither bat3r nor Blender decodes it; refused with the fix
+    g = pygltflib.GLTF2().load(str(variants["quantized"]))
+    g.extensionsUsed = g.extensionsUsed + ["EXT_meshopt_compression"]
+    g.extensionsRequired = g.extensionsRequired + ["EXT_meshopt_compression"]
+    g.save_binary(str(tmp_path / "meshopt.glb"))
+    with pytest.raises(RigError, match=r"meshopt\.glb: the file requires EXT_meshopt_compression .*gltf-transform"):
+        load_rig(tmp_path / "meshopt.glb")
 
 
 @pytest.mark.blender
@@ -143,7 +177,7 @@ def _assert_check_passes(report):
 
 @pytest.mark.blender
 @pytest.mark.parametrize("name", ["seam_split", "unindexed", "centimetres", "posed_action", "parent_node", "morph",
-                                  "rigid_child"])
+                                  "rigid_child", "quantized", "draco"])
 def test_asset_check_passes_on_the_toy_variants(variants, name, tmp_path):
     report = check_asset(variants[name], tmp_path, scale=0.01 if name == "centimetres" else 1.0, resolution=64,
                          importer=name in ("seam_split", "parent_node", "posed_action"))

@@ -3,7 +3,7 @@ import pygltflib
 import pytest
 
 from bat3r_core.rig import Rig, RigError, find_left_right_pairs
-from bat3r_core.rig_io import load_rig, save_rig_glb
+from bat3r_core.rig_io import load_rig, read_asset, save_rig_glb
 from bat3r_core.toy import toy_coat_texture
 
 
@@ -86,7 +86,7 @@ def _two_roots(gltf, blob):
     (_no_skin, "has no skin"),
     (_bad_weights, r"skin weights of vertex 10 sum to 0\.5"),
     (_nan_vertex, "NaN/inf vertex positions"),
-    (_lines, "primitive mode LINES, which cannot be triangulated"),
+    (_lines, "no usable mesh .*primitive 0 of mesh .* draws LINES, not a surface"),
     (_cycle, "cycle"),
     (_two_roots, "exactly one root, found 2"),
 ])
@@ -95,6 +95,37 @@ def test_malformed_assets_are_rejected_with_a_clear_message(toy_glb, tmp_path, m
     with pytest.raises(RigError, match=message) as err:
         load_rig(bad)
     assert "bad.glb" in str(err.value)
+
+
+def test_line_primitives_beside_the_surface_are_left_out(toy_rig, toy_glb, tmp_path):
+    def add_lines(gltf, blob):  # whiskers drawn as lines over the mesh's own vertices
+        prim = gltf.meshes[0].primitives[0]
+        gltf.meshes[0].primitives.append(pygltflib.Primitive(attributes=prim.attributes, mode=pygltflib.LINES))
+
+    rig, info = read_asset(_mutate(toy_glb, tmp_path / "whiskers.glb", add_lines))
+    np.testing.assert_allclose(rig.rest_vertices, toy_rig.rest_vertices, atol=1e-6)
+    np.testing.assert_array_equal(rig.faces, toy_rig.faces)
+    assert any("primitive 1 of mesh" in what and "draws LINES" in what for _, what in info.meshes)
+
+
+def test_a_gltf_with_several_buffer_files_reads_as_its_glb(toy_rig, toy_glb, tmp_path):
+    gltf = pygltflib.GLTF2().load(str(toy_glb))
+    blob = gltf.binary_blob()
+    skin_view = gltf.bufferViews[gltf.accessors[gltf.skins[0].inverseBindMatrices].bufferView]
+    start = skin_view.byteOffset or 0
+    (tmp_path / "skin data.bin").write_bytes(blob[start:start + skin_view.byteLength])
+    (tmp_path / "mesh.bin").write_bytes(blob)
+    skin_view.buffer, skin_view.byteOffset = 1, 0  # the inverse bind matrices from a second file
+    gltf.buffers = [pygltflib.Buffer(uri="mesh.bin", byteLength=len(blob)),
+                    pygltflib.Buffer(uri="skin%20data.bin", byteLength=skin_view.byteLength)]
+    gltf.set_binary_blob(b"")
+    gltf.save_json(str(tmp_path / "toy.gltf"))
+    back = load_rig(tmp_path / "toy.gltf")
+    np.testing.assert_allclose(back.rest_vertices, toy_rig.rest_vertices, atol=1e-6)
+    np.testing.assert_allclose(back.rest_transforms, toy_rig.rest_transforms, atol=1e-6)
+    (tmp_path / "skin data.bin").unlink()
+    with pytest.raises(RigError, match=r"toy\.gltf: its buffer file .*skin data\.bin does not exist"):
+        load_rig(tmp_path / "toy.gltf")
 
 
 def test_missing_and_unsupported_files(tmp_path):
