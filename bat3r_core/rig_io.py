@@ -129,6 +129,16 @@ def _triangles(mode: int, idx: np.ndarray, path: Path, prim_label: str) -> np.nd
                    f"triangulated; provide a triangle (or quad/polygon, via Blender) mesh")
 
 
+def _texture_transform(uv: np.ndarray, transform: dict) -> np.ndarray:
+    """UVs through ``KHR_texture_transform`` (glTF UV space): ``offset + R(rotation) · (scale ⊙ uv)``, with the
+    extension's rotation matrix (columns ``(cos, sin)`` and ``(-sin, cos)``)."""
+    offset = np.asarray(transform.get("offset", (0.0, 0.0)), dtype=np.float64)
+    scale = np.asarray(transform.get("scale", (1.0, 1.0)), dtype=np.float64)
+    a = float(transform.get("rotation", 0.0))
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return offset + (uv * scale) @ rot.T
+
+
 def _parents_of_nodes(gltf: pygltflib.GLTF2, path: Path) -> list[int]:
     parent = [-1] * len(gltf.nodes)
     for i, node in enumerate(gltf.nodes):
@@ -481,9 +491,9 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     names = [gltf.nodes[n].name or f"joint_{k}" for k, n in enumerate(joint_nodes)]
     nj = len(joint_nodes)
 
-    verts, faces, uvs, weights, report, notes = [], [], [], [], [], []
+    verts, faces, uv_sets, weights, report, notes = [], [], [], [], [], []
     material_faces: dict[int, int] = {}
-    offset, has_uv, n_targets, morph_w = 0, True, 0, []
+    offset, n_targets, morph_w = 0, 0, []
     for n in mesh_nodes:
         node = gltf.nodes[n]
         mesh = gltf.meshes[node.mesh]
@@ -548,19 +558,25 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                 w[:, j] = 1.0
             verts.append(x)
             weights.append(w)
-            if prim.attributes.TEXCOORD_0 is not None:
-                uvs.append(g.accessor(prim.attributes.TEXCOORD_0).astype(np.float64))
-            else:
-                has_uv = False
+            uv_sets.append({k: g.accessor(getattr(prim.attributes, f"TEXCOORD_{k}")).astype(np.float64)
+                            for k in (0, 1) if getattr(prim.attributes, f"TEXCOORD_{k}", None) is not None})
             offset += len(pos)
         report.append((label_node, f"{how}: {offset - n_before} vertices"))
     if not verts:
         why = "; ".join(f"'{n}': {what}" for n, what in report)
         raise RigError(f"{path}: no usable mesh (a skinned surface, or one rigidly below a joint) in the default "
                        f"scene{': ' + why if why else ''}")
+    dominant = max(material_faces, key=lambda m: (material_faces[m], -m)) if material_faces else None
+    pbr = gltf.materials[dominant].pbrMetallicRoughness if dominant is not None else None
+    colour_map = pbr.baseColorTexture if pbr is not None else None
+    transform = ((colour_map.extensions or {}).get("KHR_texture_transform") if colour_map is not None else None) or {}
+    channel = int(transform.get("texCoord", colour_map.texCoord or 0) if colour_map is not None else 0)
     uv = None
-    if has_uv and uvs:
-        uv = np.concatenate(uvs)
+    if uv_sets and all(channel in u for u in uv_sets):  # the UV set the base-colour texture is sampled with
+        uv = np.concatenate([u[channel] for u in uv_sets])
+        if transform:
+            uv = _texture_transform(uv, transform)
+            notes.append(f"the base-colour texture's KHR_texture_transform {transform} is applied to the UVs")
         uv[:, 1] = 1.0 - uv[:, 1]  # glTF's UV origin is top-left; bat3r stores OpenGL-style (origin bottom-left)
     rest = np.stack([_rigid_part(b) for b in bind])
     try:
@@ -570,12 +586,15 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
         raise RigError(f"{path}: {e}") from None
     texture, source = None, "the file has no base-colour texture"
     if material_faces:
-        dominant = max(material_faces, key=lambda m: (material_faces[m], -m))
-        pbr = gltf.materials[dominant].pbrMetallicRoughness
-        if pbr is not None and pbr.baseColorTexture is not None:
-            tex = gltf.textures[pbr.baseColorTexture.index]
-            if tex.source is not None:
-                texture, source = g.image(tex.source)
+        if colour_map is not None:
+            tex = gltf.textures[colour_map.index]
+            # the image itself, or one an extension names (EXT_texture_webp, KHR_texture_basisu, ...): the first
+            # that decodes
+            images = [e.get("source") for e in (tex.extensions or {}).values() if isinstance(e, dict)] + [tex.source]
+            for k in dict.fromkeys(i for i in images if i is not None):
+                texture, source = g.image(int(k))
+                if texture is not None:
+                    break
         elif pbr is not None and pbr.baseColorFactor is not None:
             colour = np.clip(np.asarray(pbr.baseColorFactor[:3]) ** (1 / 2.2) * 255, 0, 255).astype(np.uint8)
             texture, source = np.tile(colour, (4, 4, 1)), f"base-colour factor of material {dominant}"

@@ -108,6 +108,42 @@ def test_line_primitives_beside_the_surface_are_left_out(toy_rig, toy_glb, tmp_p
     assert any("primitive 1 of mesh" in what and "draws LINES" in what for _, what in info.meshes)
 
 
+def test_a_webp_texture_and_a_texture_transform_are_read(toy_rig, toy_glb, tmp_path):
+    import cv2
+
+    from bat3r_core.rig_io import _texture_transform
+
+    own = read_asset(toy_glb)[1].texture
+    offset, scale = np.array([0.25, -0.5]), np.array([2.0, 0.5])
+
+    def webp_and_atlas(gltf, blob):
+        ok, webp = cv2.imencode(".webp", own[..., ::-1], [cv2.IMWRITE_WEBP_QUALITY, 101])  # 101: lossless
+        assert ok
+        while len(blob) % 4:
+            blob.append(0)
+        gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(webp)))
+        blob.extend(webp.tobytes())
+        gltf.images.append(pygltflib.Image(bufferView=len(gltf.bufferViews) - 1, mimeType="image/webp"))
+        gltf.textures[0].source = None  # no PNG fallback: only the extension names the image
+        gltf.textures[0].extensions = {"EXT_texture_webp": {"source": len(gltf.images) - 1}}
+        gltf.extensionsUsed = ["EXT_texture_webp", "KHR_texture_transform"]
+        gltf.extensionsRequired = ["EXT_texture_webp"]
+        # the UVs stored for an atlas: the transform maps them back to the toy's own
+        attrs = gltf.meshes[0].primitives[0].attributes
+        uv = _accessor_view(gltf, blob, attrs.TEXCOORD_0, np.float32, 2)
+        uv[:] = (uv - offset) / scale
+        gltf.materials[0].pbrMetallicRoughness.baseColorTexture.extensions = {
+            "KHR_texture_transform": {"offset": offset.tolist(), "scale": scale.tolist()}}
+
+    rig, info = read_asset(_mutate(toy_glb, tmp_path / "webp.glb", webp_and_atlas))
+    assert info.texture_source == "embedded image 1" and np.array_equal(info.texture, own)
+    np.testing.assert_allclose(rig.uvs, toy_rig.uvs, atol=1e-6)
+    assert any("KHR_texture_transform" in n for n in info.notes)
+    # the extension's rotation turns UVs counter-clockwise: (1, 0) by 90 degrees is (0, 1)
+    np.testing.assert_allclose(_texture_transform(np.array([[1.0, 0.0]]), {"rotation": np.pi / 2}), [[0.0, 1.0]],
+                               atol=1e-12)
+
+
 def test_a_gltf_with_several_buffer_files_reads_as_its_glb(toy_rig, toy_glb, tmp_path):
     gltf = pygltflib.GLTF2().load(str(toy_glb))
     blob = gltf.binary_blob()
