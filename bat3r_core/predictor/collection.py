@@ -14,7 +14,9 @@ crop's intrinsics, in the pixel convention of ``docs/CONVENTIONS.md`` (the image
 pixel ``[i, j]`` has its centre at ``(j + 0.5, i + 0.5)``).
 
 Images are decoded in their stored pixel orientation (EXIF orientation tags are not applied), the same way the
-masks are, so a mask that was made in the displayed orientation of a rotated photo shows up as a size mismatch.
+masks are. A photo whose mask has the size of the photo as displayed (its EXIF orientation turns it by 90 degrees,
+and the mask was drawn on the turned photo) is turned the same way (:func:`apply_exif_orientation`); any other size
+difference is a size mismatch.
 """
 from __future__ import annotations
 
@@ -374,14 +376,49 @@ def read_mask(path: str | os.PathLike | None) -> np.ndarray:
     return arr != 0
 
 
+EXIF_ORIENTATION_TAG = 0x0112
+
+
+def exif_orientation(path: str | os.PathLike) -> int:
+    """The EXIF orientation tag of an image file (1-8; 1, "as stored", when it has none or cannot be read)."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            value = int(im.getexif().get(EXIF_ORIENTATION_TAG, 1))
+    except Exception:  # noqa: BLE001 - no EXIF, or a format Pillow does not read: the stored order
+        return 1
+    return value if 1 <= value <= 8 else 1
+
+
+def apply_exif_orientation(image: np.ndarray, orientation: int) -> np.ndarray:
+    """``image`` (H, W[, C]) in stored pixel order, turned the way a viewer shows it under the EXIF ``orientation``
+    (2: mirrored, 3: turned 180 degrees, 4: flipped, 5: transposed, 6: turned 90 degrees clockwise, 7: transversed,
+    8: turned 90 degrees counter-clockwise)."""
+    ops = {1: lambda a: a, 2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+           5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: np.rot90(a, -1)[::-1],
+           8: lambda a: np.rot90(a, 1)}
+    if orientation not in ops:
+        raise ValueError(f"EXIF orientation must be 1-8, got {orientation!r}")
+    return np.ascontiguousarray(ops[orientation](image))
+
+
 def load_sample(sample: CollectionSample) -> tuple[np.ndarray, np.ndarray]:
-    """Image (H, W, 3) uint8 RGB and mask (H, W) bool of a sample; ``BadSample`` when it cannot be used."""
+    """Image (H, W, 3) uint8 RGB and mask (H, W) bool of a sample; ``BadSample`` when it cannot be used.
+
+    A mask with the size of the image as displayed under its EXIF orientation (a phone photo stored sideways, its
+    mask drawn on the upright photo) gets the image turned upright to match it."""
     image = read_image(sample.image_path)
     mask = read_mask(sample.mask_path)
     if mask.shape != image.shape[:2]:
-        raise BadSample(STATUS_SIZE_MISMATCH,
-                        f"mask {sample.mask_path} is {mask.shape[1]}x{mask.shape[0]} (WxH) but image "
-                        f"{sample.image_path} is {image.shape[1]}x{image.shape[0]}; expected equal sizes")
+        orientation = exif_orientation(sample.image_path)
+        upright = apply_exif_orientation(image, orientation)
+        if orientation in (5, 6, 7, 8) and upright.shape[:2] == mask.shape:
+            image = upright
+        else:
+            raise BadSample(STATUS_SIZE_MISMATCH,
+                            f"mask {sample.mask_path} is {mask.shape[1]}x{mask.shape[0]} (WxH) but image "
+                            f"{sample.image_path} is {image.shape[1]}x{image.shape[0]}; expected equal sizes")
     if not mask.any():
         raise BadSample(STATUS_EMPTY_MASK, f"mask {sample.mask_path} has no foreground pixel; "
                                            f"expected a nonzero object region")

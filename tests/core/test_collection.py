@@ -10,8 +10,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from bat3r_core.predictor.collection import (
-    CollectionConfig, CollectionSample, CropTransform, crop_box_for_mask, crop_to_square, crop_transform_from_row,
-    list_collection, list_parquet_collection, load_sample, write_collection_shards,
+    BadSample, CollectionConfig, CollectionSample, CropTransform, apply_exif_orientation, crop_box_for_mask,
+    crop_to_square, crop_transform_from_row, exif_orientation, list_collection, list_parquet_collection, load_sample,
+    write_collection_shards,
 )
 from bat3r_core.shards import list_shards, read_shard, read_table
 
@@ -132,6 +133,34 @@ def _blob_mask(h, w, r0=8, c0=10):
     m = np.zeros((h, w), np.uint8)
     m[r0:h - 6, c0:w - 9] = 255
     return m
+
+
+def test_a_sideways_phone_photo_is_turned_upright_to_match_its_mask(tmp_path):
+    from PIL import Image, ImageOps
+
+    stored = np.random.default_rng(5).integers(0, 256, (48, 64, 3), np.uint8)  # landscape as the sensor wrote it
+    (tmp_path / "images").mkdir()
+    (tmp_path / "masks").mkdir()
+    for name, orientation in (("turned", 6), ("upside_down", 3)):
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.fromarray(stored).save(tmp_path / "images" / f"{name}.png", exif=exif)
+        _write(tmp_path / "masks" / f"{name}.png", _blob_mask(64, 48))  # drawn on the photo as displayed (portrait)
+    samples = {s.sample_id: s for s in list_collection(tmp_path)}
+    image, mask = load_sample(samples["turned"])
+    with Image.open(tmp_path / "images" / "turned.png") as im:
+        upright = np.asarray(ImageOps.exif_transpose(im))
+    assert image.shape == (64, 48, 3) and np.array_equal(image, upright) and mask.shape == (64, 48)
+    with pytest.raises(BadSample, match=r"is 48x64 \(WxH\) but image .*upside_down\.png is 64x48"):
+        load_sample(samples["upside_down"])  # turning by 180 degrees keeps the size: a real mismatch
+    for orientation in range(1, 9):  # every EXIF orientation as Pillow's viewer-side transpose shows it
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.fromarray(stored[:5, :7]).save(tmp_path / "o.png", exif=exif)
+        assert exif_orientation(tmp_path / "o.png") == orientation
+        with Image.open(tmp_path / "o.png") as im:
+            assert np.array_equal(apply_exif_orientation(stored[:5, :7], orientation),
+                                  np.asarray(ImageOps.exif_transpose(im))), orientation
 
 
 @pytest.fixture()
