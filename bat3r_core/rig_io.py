@@ -39,7 +39,8 @@ _NOT_SURFACES = {0: "POINTS", 1: "LINES", 2: "LINE_LOOP", 3: "LINE_STRIP"}
 _MAX_INFLUENCE_SETS = 2  # JOINTS_0/1, WEIGHTS_0/1: up to 8 influences per vertex
 
 DRACO = "KHR_draco_mesh_compression"
-"""Draco-compressed geometry: the accessors hold no data; :func:`read_any_asset` decodes it through Blender."""
+"""Draco-compressed geometry: the accessors hold no data; the primitive's Draco buffer is decoded (DracoPy) and its
+attributes found by the unique ids the extension names."""
 QUANTIZATION = "KHR_mesh_quantization"
 """Integer vertex attributes; a skinned mesh's dequantization sits in the inverse bind matrices (see read_asset)."""
 _NOT_READABLE = {
@@ -47,7 +48,7 @@ _NOT_READABLE = {
     "KHR_meshopt_compression": "meshoptimizer-compressed buffers, which neither bat3r nor Blender's importer decode",
 }
 _DECODE_HINT = ("write it uncompressed first, e.g. `npx @gltf-transform/cli copy IN.glb OUT.glb` "
-                "(gltf-transform decodes meshopt and Draco and writes plain buffers)")
+                "(gltf-transform decodes meshopt and writes plain buffers)")
 
 
 def _read_accessor(gltf: pygltflib.GLTF2, blob: bytes | Sequence[bytes | None], index: int, path: Path
@@ -253,6 +254,7 @@ class _Gltf:
         self.blobs = self._blobs()
         self.parent = _parents_of_nodes(self.gltf, path)
         self._world: dict[int, np.ndarray] = {}
+        self._decoded: dict[int, dict[str, np.ndarray]] = {}
 
     def _blobs(self) -> list[bytes | None]:
         """The bytes of every buffer: a GLB's binary chunk, a data URI, or a file beside the .gltf (None for a buffer
@@ -279,6 +281,56 @@ class _Gltf:
 
     def accessor(self, index: int) -> np.ndarray:
         return _read_accessor(self.gltf, self.blobs, index, self.path)
+
+    def _draco(self, prim) -> dict[str, np.ndarray] | None:
+        """The decoded Draco buffer of ``prim`` (``indices`` and every attribute the extension names), or None
+        for a plain primitive."""
+        ext = (prim.extensions or {}).get(DRACO)
+        if not ext:
+            return None
+        key = id(prim)
+        if key not in self._decoded:
+            import DracoPy
+
+            view = self.gltf.bufferViews[ext["bufferView"]]
+            blob = self.blobs[view.buffer] if view.buffer < len(self.blobs) else None
+            if blob is None:
+                raise RigError(f"{self.path}: a Draco buffer reads buffer {view.buffer}, which has no data")
+            start = view.byteOffset or 0
+            try:
+                mesh = DracoPy.decode(bytes(blob[start:start + view.byteLength]))
+            except Exception as e:  # noqa: BLE001 - DracoPy raises its own errors on corrupt buffers
+                raise RigError(f"{self.path}: a Draco-compressed primitive cannot be decoded "
+                               f"({type(e).__name__}: {e})") from None
+            out = {"indices": np.asarray(mesh.faces).reshape(-1).astype(np.int64)}
+            for name, uid in (ext.get("attributes") or {}).items():
+                att = mesh.get_attribute_by_unique_id(int(uid))
+                if att is None:
+                    raise RigError(f"{self.path}: the Draco buffer of a primitive has no attribute {uid} ({name})")
+                data = np.asarray(att["data"])
+                out[name] = data.reshape(len(data), -1)
+            self._decoded[key] = out
+        return self._decoded[key]
+
+    def attribute(self, prim, name: str) -> np.ndarray | None:
+        """Vertex attribute ``name`` (``POSITION``, ``JOINTS_0``, ...) of a primitive, from its Draco buffer when it
+        is compressed, else from its accessor; None when the primitive has no such attribute."""
+        index = getattr(prim.attributes, name, None)
+        draco = self._draco(prim)
+        if draco is not None and name in draco:
+            data = draco[name]
+            acc = self.gltf.accessors[index] if index is not None else None
+            if acc is not None and acc.normalized and np.issubdtype(data.dtype, np.integer):
+                data = data.astype(np.float64) / np.iinfo(data.dtype).max
+            return data
+        return None if index is None else self.accessor(index)
+
+    def indices(self, prim) -> np.ndarray | None:
+        """A primitive's vertex indices (None for an unindexed one)."""
+        draco = self._draco(prim)
+        if draco is not None:
+            return draco["indices"]
+        return None if prim.indices is None else self.accessor(prim.indices).reshape(-1).astype(np.int64)
 
     def world(self, i: int) -> np.ndarray:
         """(4, 4) world matrix of node ``i`` at the file's node TRS (animations not applied)."""
@@ -338,7 +390,7 @@ def _primitive_positions(g: _Gltf, mesh: pygltflib.Mesh, node: pygltflib.Node, p
     attrs = prim.attributes
     if attrs.POSITION is None:
         raise RigError(f"{g.path}: {label} has no POSITION attribute")
-    pos = g.accessor(attrs.POSITION).astype(np.float64)
+    pos = g.attribute(prim, "POSITION").astype(np.float64)
     targets = prim.targets or []
     weights = getattr(node, "weights", None) or mesh.weights or []
     for k, target in enumerate(targets):
@@ -356,12 +408,10 @@ def _primitive_weights(g: _Gltf, prim, label: str, num_joints: int) -> np.ndarra
     attrs = prim.attributes
     w = None
     for s in range(_MAX_INFLUENCE_SETS + 2):
-        ja = getattr(attrs, f"JOINTS_{s}", None)
-        wa = getattr(attrs, f"WEIGHTS_{s}", None)
-        if ja is None or wa is None:
+        if getattr(attrs, f"JOINTS_{s}", None) is None or getattr(attrs, f"WEIGHTS_{s}", None) is None:
             break
-        jj = g.accessor(ja).astype(np.int64)
-        ww = g.accessor(wa).astype(np.float64)
+        jj = g.attribute(prim, f"JOINTS_{s}").astype(np.int64)
+        ww = g.attribute(prim, f"WEIGHTS_{s}").astype(np.float64)
         if w is None:
             w = np.zeros((len(jj), num_joints))
         if jj.max(initial=0) >= num_joints:
@@ -439,9 +489,6 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     if unreadable:
         raise RigError(f"{path}: the file requires {unreadable[0]} ({_NOT_READABLE[unreadable[0]]}); "
                        f"{_DECODE_HINT}")
-    if DRACO in required:
-        raise RigError(f"{path}: its meshes are Draco-compressed ({DRACO}), which this reader does not decode; "
-                       f"read it with read_any_asset/load_rig (they decode it through Blender), or {_DECODE_HINT}")
     if not gltf.skins:
         raise RigError(f"{path}: the mesh has no skin (no glTF 'skins'); bat3r needs a rigged, skinned mesh "
                        f"(armature + vertex weights)")
@@ -532,8 +579,8 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
             n_targets += nt
             ws = getattr(node, "weights", None) or mesh.weights or []
             morph_w.extend(float(x) for x in list(ws)[:nt])
-            idx = (g.accessor(prim.indices).reshape(-1).astype(np.int64) if prim.indices is not None
-                   else np.arange(len(pos)))
+            idx = g.indices(prim)
+            idx = np.arange(len(pos)) if idx is None else idx
             tri = _triangles(mode, idx, path, label)
             if tri.size and tri.max() >= len(pos):
                 raise RigError(f"{path}: {label} indexes vertex {tri.max()} of {len(pos)}")
@@ -558,7 +605,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                 w[:, j] = 1.0
             verts.append(x)
             weights.append(w)
-            uv_sets.append({k: g.accessor(getattr(prim.attributes, f"TEXCOORD_{k}")).astype(np.float64)
+            uv_sets.append({k: g.attribute(prim, f"TEXCOORD_{k}").astype(np.float64)
                             for k in (0, 1) if getattr(prim.attributes, f"TEXCOORD_{k}", None) is not None})
             offset += len(pos)
         report.append((label_node, f"{how}: {offset - n_before} vertices"))
@@ -646,27 +693,16 @@ def _convert_with_blender(path: Path) -> Path:
     return out
 
 
-def _is_draco(path: Path) -> bool:
-    """Whether the glTF/GLB ``path`` requires Draco mesh decompression (False for an unreadable file: read_asset
-    reports that)."""
-    try:
-        return DRACO in (pygltflib.GLTF2().load(str(path)).extensionsRequired or [])
-    except Exception:  # noqa: BLE001 - pygltflib raises assorted errors on corrupt files
-        return False
-
-
 def read_any_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y") -> tuple[Rig, AssetInfo]:
-    """:func:`read_asset` for ``.glb``/``.gltf``, and for ``.fbx``/``.blend`` and Draco-compressed glTF
-    (``KHR_draco_mesh_compression``) after conversion to a plain GLB through Blender
-    (:mod:`bat3r_core.render.blender_convert`)."""
+    """:func:`read_asset` for ``.glb``/``.gltf``, and for ``.fbx``/``.blend`` after conversion through Blender."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"rigged asset {path} does not exist; provide a rigged, skinned mesh "
                                 f"(.glb/.gltf, or .fbx/.blend converted through Blender)")
     suffix = path.suffix.lower()
-    if suffix in (".glb", ".gltf") and not _is_draco(path):
+    if suffix in (".glb", ".gltf"):
         return read_asset(path, scale, up_axis)
-    if suffix in (".fbx", ".blend", ".glb", ".gltf"):
+    if suffix in (".fbx", ".blend"):
         converted = _convert_with_blender(path)
         rig, info = read_asset(converted, scale, up_axis)
         rig = Rig(name=path.stem, rest_vertices=rig.rest_vertices, faces=rig.faces, joint_names=rig.joint_names,

@@ -1,13 +1,12 @@
-"""Convert a rigged FBX, .blend or compressed glTF asset to a plain skinned GLB with Blender (imports bpy; run as a
-subprocess)::
+"""Convert a rigged FBX or .blend asset to a skinned GLB with Blender (imports bpy; run as a subprocess)::
 
-    python -m bat3r_core.render.blender_convert IN.fbx|IN.blend|IN.glb|IN.gltf OUT.glb
+    python -m bat3r_core.render.blender_convert IN.fbx|IN.blend OUT.glb
 
 The GLB keeps the armature, bone names and hierarchy, vertex groups (as a glTF skin with inverse bind matrices),
-meshes parented to the armature or its bones, UVs and the first material's textures, in glTF's Y-up frame, with
-uncompressed float buffers. :func:`bat3r_core.rig_io.load_rig` calls this for ``.fbx`` and ``.blend`` files and for
-Draco-compressed glTF (``KHR_draco_mesh_compression``, which Blender's importer decodes). Exit code 0 on success;
-2 with a message on stderr when the input has no armature or no mesh bound to one.
+meshes parented to the armature or its bones (eyes, tack), UVs and the first material's textures, in glTF's Y-up
+frame. :func:`bat3r_core.rig_io.load_rig` calls this for ``.fbx`` and ``.blend`` files. (glTF is read natively:
+Blender's glTF importer bakes the pose a file was saved in into the mesh and makes it the rest pose.) Exit code 0 on
+success; 2 with a message on stderr when the input has no armature or no mesh bound to one.
 """
 from __future__ import annotations
 
@@ -16,7 +15,7 @@ from pathlib import Path
 
 
 def convert(src: str | Path, dst: str | Path) -> Path:
-    """Convert ``src`` (.fbx, .blend, .glb or .gltf) into the GLB ``dst``; raises ValueError for unusable inputs."""
+    """Convert ``src`` (.fbx or .blend) into the GLB ``dst``; raises ValueError for unusable inputs."""
     try:
         import bpy
     except ImportError as e:  # pragma: no cover - depends on the environment
@@ -30,11 +29,8 @@ def convert(src: str | Path, dst: str | Path) -> Path:
     elif suffix == ".fbx":
         bpy.ops.wm.read_factory_settings(use_empty=True)
         bpy.ops.import_scene.fbx(filepath=str(src))
-    elif suffix in (".glb", ".gltf"):  # the importer takes the bind pose of the inverse bind matrices as the rest
-        bpy.ops.wm.read_factory_settings(use_empty=True)
-        bpy.ops.import_scene.gltf(filepath=str(src))
     else:
-        raise ValueError(f"input must be .fbx, .blend, .glb or .gltf, got {src.name}")
+        raise ValueError(f"input must be .fbx or .blend, got {src.name}")
     objects = list(bpy.context.scene.objects)
     armatures = [o for o in objects if o.type == "ARMATURE"]
     skinned = [o for o in objects if o.type == "MESH" and any(m.type == "ARMATURE" and m.object is not None
@@ -69,8 +65,7 @@ def convert(src: str | Path, dst: str | Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 2:
-        print("usage: python -m bat3r_core.render.blender_convert IN.fbx|IN.blend|IN.glb|IN.gltf OUT.glb",
-              file=sys.stderr)
+        print("usage: python -m bat3r_core.render.blender_convert IN.fbx|IN.blend OUT.glb", file=sys.stderr)
         return 2
     try:
         convert(args[0], args[1])

@@ -13,6 +13,7 @@ Each NAME writes ``OUT_DIR/NAME.glb`` from a fresh import of ``IN.glb``:
 * ``morph``: a shape key that swells the head, exported at a default weight of 0.6.
 * ``rigid_child``: an eye (a small sphere) parented to the head bone, not skinned.
 * ``draco``: exported Draco-compressed (``KHR_draco_mesh_compression``), as web-optimised downloads are.
+* ``posed_draco``: ``posed_action`` exported Draco-compressed.
 """
 from __future__ import annotations
 
@@ -71,7 +72,7 @@ def make(src: str, out_dir: Path, name: str) -> Path:
             o.select_set(True)
         bpy.context.view_layer.objects.active = arm
         bpy.ops.object.transform_apply(location=False, rotation=False, scale=True)
-    elif name == "posed_action":
+    elif name in ("posed_action", "posed_draco"):
         arm.animation_data_create()
         action = bpy.data.actions.new("Trot")
         arm.animation_data.action = action
@@ -81,7 +82,8 @@ def make(src: str, out_dir: Path, name: str) -> Path:
                 pb.rotation_euler = Euler((sign * 0.25 * math.sin(k), 0.2 * math.cos(k), 0.0))
                 pb.keyframe_insert("rotation_euler", frame=frame)
         bpy.context.scene.frame_set(7)  # the saved pose is neither keyframe nor the rest pose
-        options = {"export_animations": True, "export_rest_position_armature": False}
+        options = {"export_animations": True, "export_rest_position_armature": False,
+                   "export_draco_mesh_compression_enable": name == "posed_draco"}
     elif name == "parent_node":
         empty = bpy.data.objects.new("placement", None)
         bpy.context.scene.collection.objects.link(empty)

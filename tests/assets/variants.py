@@ -11,7 +11,7 @@ import numpy as np
 import pygltflib
 
 BLENDER_VARIANTS = ("seam_split", "flat", "centimetres", "posed_action", "parent_node", "morph", "rigid_child",
-                    "draco")
+                    "draco", "posed_draco")
 SCRIPT = Path(__file__).with_name("make_variants.py")
 
 

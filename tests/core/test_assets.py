@@ -92,11 +92,13 @@ def test_quantized_and_compressed_gltf_read_as_their_source(variants, toy_rig, t
     assert info.dequantization is not None and abs(info.dequantization[0] - extent / 2) < 1e-4
     assert any("KHR_mesh_quantization" in n for n in info.notes)
     assert prepare_asset(variants["quantized"], tmp_path).rig.num_vertices == toy_rig.num_vertices
-    # Draco: the native reader names it; load_rig decodes it through Blender (14-bit positions by default)
-    with pytest.raises(RigError, match="Draco-compressed .*KHR_draco_mesh_compression"):
-        read_asset(variants["draco"])
-    rig = load_rig(variants["draco"])
-    assert _same_points(rig.rest_vertices, rest) < 2 * extent / 2 ** 14 and joint_error(rig) < 1e-4
+    # Draco (Blender's exporter: 14-bit positions), also saved posed with an action: the bind pose as ever
+    for name in ("draco", "posed_draco"):
+        rig, info = read_asset(variants[name])
+        assert _same_points(rig.rest_vertices, rest) < 2 * extent / 2 ** 14 and joint_error(rig) < 1e-5, name
+        assert rig.num_vertices == toy_rig.num_vertices and len(rig.faces) == len(toy_rig.faces)
+        np.testing.assert_allclose(rig.skin_weights.sum(1), 1.0, atol=1e-5)
+    assert info.node_pose_deg > 5 and info.animations == ("Trot",)
     # meshopt: neither bat3r nor Blender decodes it; refused with the fix
     g = pygltflib.GLTF2().load(str(variants["quantized"]))
     g.extensionsUsed = g.extensionsUsed + ["EXT_meshopt_compression"]
