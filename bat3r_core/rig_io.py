@@ -97,7 +97,7 @@ def _read_accessor(gltf: pygltflib.GLTF2, blob: bytes | Sequence[bytes | None], 
             raise RigError(f"{path}: sparse accessor {index} replaces element {idx.max()} of {acc.count}")
         out[idx] = values
     if acc.normalized and acc.componentType != pygltflib.FLOAT:
-        out = out.astype(np.float64) / np.iinfo(dtype).max
+        out = np.maximum(out.astype(np.float64) / np.iinfo(dtype).max, -1.0)  # glTF: max(c / 127, -1) for bytes
     return out
 
 
@@ -321,7 +321,7 @@ class _Gltf:
             data = draco[name]
             acc = self.gltf.accessors[index] if index is not None else None
             if acc is not None and acc.normalized and np.issubdtype(data.dtype, np.integer):
-                data = data.astype(np.float64) / np.iinfo(data.dtype).max
+                data = np.maximum(data.astype(np.float64) / np.iinfo(data.dtype).max, -1.0)
             return data
         return None if index is None else self.accessor(index)
 

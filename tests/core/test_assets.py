@@ -99,6 +99,14 @@ def test_quantized_and_compressed_gltf_read_as_their_source(variants, toy_rig, t
         assert rig.num_vertices == toy_rig.num_vertices and len(rig.faces) == len(toy_rig.faces)
         np.testing.assert_allclose(rig.skin_weights.sum(1), 1.0, atol=1e-5)
     assert info.node_pose_deg > 5 and info.animations == ("Trot",)
+    g = pygltflib.GLTF2().load(str(variants["draco"]))  # a torn Draco buffer: refused by name
+    blob = bytearray(g.binary_blob())
+    view = g.bufferViews[g.meshes[0].primitives[0].extensions["KHR_draco_mesh_compression"]["bufferView"]]
+    blob[(view.byteOffset or 0):(view.byteOffset or 0) + view.byteLength] = bytes(view.byteLength)
+    g.set_binary_blob(bytes(blob))
+    g.save_binary(str(tmp_path / "torn.glb"))
+    with pytest.raises(RigError, match=r"torn\.glb: a Draco-compressed primitive cannot be decoded"):
+        read_asset(tmp_path / "torn.glb")
     # meshopt: neither bat3r nor Blender decodes it; refused with the fix
     g = pygltflib.GLTF2().load(str(variants["quantized"]))
     g.extensionsUsed = g.extensionsUsed + ["EXT_meshopt_compression"]
