@@ -12,7 +12,8 @@ each evaluated on the same test split with the loop's own metrics (``bat3r_core.
 ``--ablations`` adds the paper's ablations of the loop, each a bootstrap run starting from the same Φ₀
 (``init_predictor``): no fitting regularisation, no view augmentation, no pseudo-label filter. ``--seeds 0 S ...``
 repeats the three arms from the same Φ₀ with each extra seed (``seed_arms``) and reports their mean, spread and the
-paired loop − control difference (``seed_figures``).
+paired loop − control difference (``seed_figures``); ``evaluation_spread`` scores the loop's last test predictions
+with five evaluation seeds, the part of any spread between runs that is the evaluation's own sampling.
 
 Two figures say what limits the headroom when there is little: the **map floors** (``map_floors``: the test mCD of
 exact point maps and of exact rest-pose maps at the run's crop resolution, the best any oracle and any control can
@@ -57,7 +58,7 @@ if __name__ == "__main__":  # before Prefect is imported: it reads its settings 
 from _results import RESULTS_DIR, record  # noqa: E402
 from bench_demo_control import _oracle_dataset, _test_metrics  # noqa: E402
 
-from bat3r_core import evaluation_truth, shards  # noqa: E402
+from bat3r_core import evaluation, evaluation_truth, shards  # noqa: E402
 from bat3r_core.cli import add_catalog_argument, parse_overrides  # noqa: E402
 from bat3r_core.predictor.data import ShardDataset, hold_on_device  # noqa: E402
 from bat3r_core.predictor.features import make_feature_fn  # noqa: E402
@@ -183,6 +184,38 @@ def training_fit(settings, predictors: dict[str, Path], iteration: int, run_seed
             settings, checkpoint, out, iteration, seed=run_seed + iteration, split="collection"))
         figures[f"mcd_{name}_on_collection"] = round(float(row["mcd_cm"]), 3)
     return figures
+
+
+EVAL_SEEDS = 5
+"""Evaluation seeds the loop's last test predictions are scored with (``evaluation_spread``)."""
+
+
+def evaluation_spread(settings, predictions: Path, iteration: int, run_seed: int,
+                      n: int = EVAL_SEEDS) -> dict[str, float]:
+    """How far the loop's last test mCD moves with the evaluation's own sampling alone (the 2,000 points drawn on
+    each true surface, the subsample of predicted points), the predictions fixed: the loop's test predictions of
+    ``iteration`` scored with the evaluation seeds ``run_seed + iteration + k``, k = 0..n-1 (k = 0 is the loop's own
+    score). ``mcd_loop_eval_seed<k>`` per seed, ``mcd_loop_eval_seeds_sd`` (sample sd) and ``_range`` (cm): the part of
+    a cross-seed spread (``--seeds``) that is evaluation, not training. Cached in ``fidelity/eval_seeds/``."""
+    import tempfile
+
+    gt = evaluation_truth.load_ground_truth(Path(settings.test_split["ground_truth"]) / "ground_truth.npz")
+    rig = load_rig(settings.assets.asset)
+
+    def score(seed: int) -> dict:
+        with tempfile.TemporaryDirectory(prefix="bat3r_eval_seed_") as out:
+            for i in shards.list_shards(predictions):
+                evaluation_truth.evaluate_prediction_shard(predictions, i, gt, rig, settings.body_frame, "test",
+                                                           iteration, out, seed=seed)
+            return evaluation.aggregate(shards.read_table(out))[0]
+
+    root = settings.layout.root / "fidelity" / "eval_seeds" / f"iter-{iteration:02d}"
+    values = [float(_cached_row(root / f"seed-{k}.json", lambda k=k: score(run_seed + iteration + k))["mcd_cm"])
+              for k in range(n)]
+    out = {f"mcd_loop_eval_seed{k}": round(v, 3) for k, v in enumerate(values)}
+    out["mcd_loop_eval_seeds_sd"] = round(float(np.std(values, ddof=1)), 3) if n > 1 else 0.0
+    out["mcd_loop_eval_seeds_range"] = round(max(values) - min(values), 3)
+    return out
 
 
 LATERAL_SHIFT_CM = 3.0
@@ -399,6 +432,11 @@ def verdict_lines(figures: dict[str, float]) -> list[str]:
     seeds = seed_line(figures)
     if seeds:
         lines.append(seeds)
+    if "mcd_loop_eval_seeds_sd" in figures:
+        k = sum(1 for key in figures if key.startswith("mcd_loop_eval_seed") and key[-1].isdigit())
+        lines.append(f"scored with {k} evaluation seeds, the loop's own test predictions move by sd "
+                     f"{figures['mcd_loop_eval_seeds_sd']:.3f} cm (range {figures['mcd_loop_eval_seeds_range']:.3f}): "
+                     "that much of any spread between runs is the evaluation's sampling, the rest is training")
     lines.append("paper's ablation ordering " + ablation_ordering(
         loop, figures.get(f"mcd_no_view_augmentation_iter{n}"), figures.get(f"mcd_no_fitting_regularisation_iter{n}")))
     return lines
@@ -509,6 +547,8 @@ def main(argv: list[str] | None = None) -> dict:
                                 iterations, run_seed))
     figures.update(sized_figures)
     figures.update(seed_figures(args.seeds, arms, iterations))
+    figures.update(evaluation_spread(settings, settings.layout.stage_dir(iterations, "test_infer"), iterations,
+                                     run_seed))
     root = settings.layout.root / "fidelity"
     figures["crop_px"] = settings.model.resolution
     figures.update(map_error_figures(settings, {

@@ -8,6 +8,7 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bat3r_core import evaluation, shards
@@ -111,7 +112,14 @@ def test_the_bench_preset_runs_every_arm_from_one_phi0(bench_run, catalog):
         pair = (figures[f"mcd_{arm}_iter1"], figures[f"mcd_{arm}_seed1_iter1"])
         assert figures[f"mcd_{arm}_seeds_mean"] == pytest.approx(sum(pair) / 2, abs=2e-3)
         assert figures[f"mcd_{arm}_seeds_sd"] == pytest.approx(abs(pair[0] - pair[1]) / math.sqrt(2), abs=2e-3)
+    # the loop's own test predictions under 5 evaluation seeds; seed k = 0 is the loop's own score
+    assert figures["mcd_loop_eval_seed0"] == figures["mcd_loop_iter1"]
+    scores = [figures[f"mcd_loop_eval_seed{k}"] for k in range(B.EVAL_SEEDS)]
+    assert len(set(scores)) > 1, "other surface samples, other scores"
+    assert figures["mcd_loop_eval_seeds_range"] == pytest.approx(max(scores) - min(scores), abs=2e-3)
+    assert figures["mcd_loop_eval_seeds_sd"] == pytest.approx(float(np.std(scores, ddof=1)), abs=2e-3)
     saved = json.loads((out / "fidelity.json").read_text())
+    assert "scored with 5 evaluation seeds, the loop's own test predictions move by sd" in saved["notes"]
     assert "over 2 seeds from the same Φ₀" in saved["notes"]
     assert "with 12 collection images the oracle reaches" in saved["notes"]
     assert "perfect oracle over a perfect control" in saved["notes"]
@@ -259,6 +267,11 @@ def test_verdicts_follow_the_recorded_figures():
     assert shifted[2].endswith("; the oracle's test maps are shifted 9.9 cm up on average (what training renders "
                                "whose x, y follow another principal point teach, docs/fitting.md)")
     assert "Φ₀'s test maps are shifted" not in shifted[2]
+    spread = B.verdict_lines({**figs, "mcd_loop_eval_seed0": 7.0, "mcd_loop_eval_seed1": 7.04,
+                              "mcd_loop_eval_seeds_sd": 0.028, "mcd_loop_eval_seeds_range": 0.04})
+    assert spread[2] == ("scored with 2 evaluation seeds, the loop's own test predictions move by sd 0.028 cm (range "
+                         "0.040): that much of any spread between runs is the evaluation's sampling, the rest is "
+                         "training")
 
 
 def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_run, catalog, tmp_path):
