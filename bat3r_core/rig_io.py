@@ -37,6 +37,7 @@ _NCOMP = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT4": 16}
 _TRIANGLES, _TRIANGLE_STRIP, _TRIANGLE_FAN = 4, 5, 6
 _NOT_SURFACES = {0: "POINTS", 1: "LINES", 2: "LINE_LOOP", 3: "LINE_STRIP"}
 _MAX_INFLUENCE_SETS = 2  # JOINTS_0/1, WEIGHTS_0/1: up to 8 influences per vertex
+_WEIGHT_SUM_TOLERANCE = 1e-3  # weight sums further from 1 are reported (and normalised like all others)
 
 DRACO = "KHR_draco_mesh_compression"
 """Draco-compressed geometry: the accessors hold no data; the primitive's Draco buffer is decoded (DracoPy) and its
@@ -474,7 +475,9 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     * not skinned but below a joint in the hierarchy (eyes, tack): attached rigidly to that joint (weight 1);
     * anything else (static props, other skeletons): left out, and listed in :attr:`AssetInfo.meshes`.
 
-    Morph targets are applied at their default weights (the node's ``weights``, else the mesh's, else 0).
+    Morph targets are applied at their default weights (the node's ``weights``, else the mesh's, else 0). Skin
+    weights are normalised per vertex (sums off 1 are counted in the notes; a vertex with none follows its skin's
+    first joint).
     Vertices stay as the file stores them (split at UV seams, or one triple per triangle); fitting welds them
     (:mod:`bat3r_core.topology`). Joint rest frames are made rigid (the polar rotation of each bind frame, the
     joint origin kept): θ then rotates about orthonormal axes, and skinning reproduces the bind pose exactly.
@@ -539,6 +542,8 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     nj = len(joint_nodes)
 
     verts, faces, uv_sets, weights, report, notes = [], [], [], [], [], []
+    weight_sums: list[float] = []  # the sums of the vertices whose weights did not sum to 1 (normalised)
+    n_unweighted = 0
     material_faces: dict[int, int] = {}
     offset, n_targets, morph_w = 0, 0, []
     for n in mesh_nodes:
@@ -592,12 +597,21 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                 w_local = _primitive_weights(g, prim, label, len(other_joints))
                 if w_local is None:
                     raise RigError(f"{path}: {label} has no JOINTS_0/WEIGHTS_0 skin attributes")
-                sums = w_local.sum(1, keepdims=True)
-                w_norm = w_local / np.where(sums > 0, sums, 1.0)
+                # glTF viewers and Blender normalise weights that do not sum to 1 (exporters that cut more
+                # influences down to four leave such sums); a vertex with none follows the skin's first joint
+                sums = w_local.sum(1)
+                unweighted = ~(sums > 0)
+                w_local[unweighted, 0] = 1.0
+                sums[unweighted] = 1.0
+                off = np.abs(sums - 1.0) > _WEIGHT_SUM_TOLERANCE
+                if off.any():
+                    weight_sums.extend(sums[off & ~unweighted].tolist())
+                n_unweighted += int(unweighted.sum())
+                w_norm = w_local / sums[:, None]
                 blended = np.einsum("vk,kij->vij", w_norm, rebind)  # (n, 4, 4)
                 x = np.einsum("vij,vj->vi", blended, ph)[:, :3]
                 w = np.zeros((len(pos), nj))
-                np.add.at(w, (slice(None), column), w_local)  # as stored: Rig refuses weights that do not sum to 1
+                np.add.at(w, (slice(None), column), w_norm)
             else:
                 x = ph @ rigid.T
                 x = x[:, :3]
@@ -648,6 +662,11 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
         if len(material_faces) > 1:
             notes.append(f"{len(material_faces)} materials; the base colour of the one on the most faces "
                          f"(material {dominant}) is used for the whole mesh")
+    if weight_sums:
+        notes.append(f"the skin weights of {len(weight_sums)} vertices summed to {min(weight_sums):.4g}-"
+                     f"{max(weight_sums):.4g}, not 1; normalised, as glTF viewers and Blender do")
+    if n_unweighted:
+        notes.append(f"{n_unweighted} vertices have no skin weight; each follows its skin's first joint rigidly")
     if dequantization is not None:
         notes.append(f"{QUANTIZATION}: integer positions dequantized by the scale {pose_scale:.6g} and offset "
                      f"({', '.join(f'{x:.4g}' for x in dequantization[1:])}) its inverse bind matrices carry")

@@ -49,10 +49,12 @@ def _no_skin(gltf, blob):
         n.skin = None
 
 
-def _bad_weights(gltf, blob):
+def _loose_weights(gltf, blob):
     attrs = gltf.meshes[0].primitives[0].attributes
     w = _accessor_view(gltf, blob, attrs.WEIGHTS_0, np.float32, 4)
-    w[10] *= 0.5  # vertex 10's weights sum to 0.5
+    w[10] *= 0.5  # vertex 10's weights sum to 0.5 (an exporter that dropped influences without renormalising)
+    w[11] *= 0.97
+    w[12] = 0.0  # vertex 12 has none
 
 
 def _nan_vertex(gltf, blob):
@@ -84,7 +86,6 @@ def _two_roots(gltf, blob):
 
 @pytest.mark.parametrize("mutation, message", [
     (_no_skin, "has no skin"),
-    (_bad_weights, r"skin weights of vertex 10 sum to 0\.5"),
     (_nan_vertex, "NaN/inf vertex positions"),
     (_lines, "no usable mesh .*primitive 0 of mesh .* draws LINES, not a surface"),
     (_cycle, "cycle"),
@@ -95,6 +96,17 @@ def test_malformed_assets_are_rejected_with_a_clear_message(toy_glb, tmp_path, m
     with pytest.raises(RigError, match=message) as err:
         load_rig(bad)
     assert "bad.glb" in str(err.value)
+
+
+def test_weights_that_do_not_sum_to_one_are_normalised_and_reported(toy_rig, toy_glb, tmp_path):
+    gltf = pygltflib.GLTF2().load(str(toy_glb))
+    first_joint = gltf.nodes[gltf.skins[0].joints[0]].name
+    rig, info = read_asset(_mutate(toy_glb, tmp_path / "loose.glb", _loose_weights))
+    np.testing.assert_allclose(rig.rest_vertices, toy_rig.rest_vertices, atol=1e-6)  # the mesh as stored
+    np.testing.assert_allclose(rig.skin_weights[[10, 11]], toy_rig.skin_weights[[10, 11]], atol=1e-6)
+    assert rig.skin_weights[12, rig.joint_names.index(first_joint)] == 1.0 and rig.skin_weights[12].sum() == 1.0
+    assert any("skin weights of 2 vertices summed to 0.5-0.97, not 1; normalised" in n for n in info.notes)
+    assert any("1 vertices have no skin weight" in n for n in info.notes)
 
 
 def test_line_primitives_beside_the_surface_are_left_out(toy_rig, toy_glb, tmp_path):
