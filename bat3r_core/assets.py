@@ -28,8 +28,10 @@ from .shards import atomic_write
 
 __all__ = ["PreparedAsset", "prepare_asset", "BodyFrameProposal", "propose_body_frame", "ASSET_FORMAT_VERSION"]
 
-ASSET_FORMAT_VERSION = 1
-"""Bumped when the normalisation changes, so that normalised GLBs written by older code are rebuilt."""
+ASSET_FORMAT_VERSION = 2
+"""Bumped when the normalisation changes, so that normalised GLBs written by older code are rebuilt. 2: quantized
+positions dequantized, Draco decoded, textures named by extensions and through KHR_texture_transform, skin weights
+normalised."""
 
 
 @dataclass(frozen=True)
@@ -86,11 +88,8 @@ def prepare_asset(source: str | os.PathLike, out_dir: str | os.PathLike, scale: 
     source = Path(source)
     rig, info = read_any_asset(source, scale, up_axis)
     check_plausible_size(rig, source, scale)
-    described = {"file": _file_digest(source), "scale": float(scale), "up_axis": info.up_axis,
-                 "version": ASSET_FORMAT_VERSION}
-    if info.dequantization is not None:  # read at the integer grid's scale before this was understood
-        described["dequantization"] = list(info.dequantization)
-    key = hashlib.sha256(json.dumps(described).encode())
+    key = hashlib.sha256(json.dumps({"file": _file_digest(source), "scale": float(scale),
+                                     "up_axis": info.up_axis, "version": ASSET_FORMAT_VERSION}).encode())
     out = Path(out_dir) / f"{name or source.stem}-{key.hexdigest()[:12]}.glb"
     if not out.is_file():
         save_rig_glb(rig, out, texture=info.texture)
