@@ -477,7 +477,9 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
 
     Morph targets are applied at their default weights (the node's ``weights``, else the mesh's, else 0). Skin
     weights are normalised per vertex (sums off 1 are counted in the notes; a vertex with none follows its skin's
-    first joint).
+    first joint). Web-optimised files: Draco primitives are decoded in place; a quantized file
+    (``KHR_mesh_quantization``) whose inverse bind matrices carry the dequantization is placed by the root joint's
+    ``J · IBM`` scale and offset (:attr:`AssetInfo.dequantization`); meshopt buffers are refused with the fix.
     Vertices stay as the file stores them (split at UV seams, or one triple per triangle); fitting welds them
     (:mod:`bat3r_core.topology`). Joint rest frames are made rigid (the polar rotation of each bind frame, the
     joint origin kept): θ then rotates about orthonormal axes, and skinning reproduces the bind pose exactly.
