@@ -283,6 +283,15 @@ class _Gltf:
     def accessor(self, index: int) -> np.ndarray:
         return _read_accessor(self.gltf, self.blobs, index, self.path)
 
+    def view_bytes(self, index: int, what: str) -> bytes:
+        """The bytes of buffer view ``index``; RigError naming ``what`` reads it when its buffer has no data."""
+        view = self.gltf.bufferViews[index]
+        blob = self.blobs[view.buffer] if view.buffer < len(self.blobs) else None
+        if blob is None:
+            raise RigError(f"{self.path}: {what} reads buffer {view.buffer}, which has no data")
+        start = view.byteOffset or 0
+        return bytes(blob[start:start + view.byteLength])
+
     def _draco(self, prim) -> dict[str, np.ndarray] | None:
         """The decoded Draco buffer of ``prim`` (``indices`` and every attribute the extension names), or None
         for a plain primitive."""
@@ -293,13 +302,9 @@ class _Gltf:
         if key not in self._decoded:
             import DracoPy
 
-            view = self.gltf.bufferViews[ext["bufferView"]]
-            blob = self.blobs[view.buffer] if view.buffer < len(self.blobs) else None
-            if blob is None:
-                raise RigError(f"{self.path}: a Draco buffer reads buffer {view.buffer}, which has no data")
-            start = view.byteOffset or 0
+            data = self.view_bytes(ext["bufferView"], "a Draco-compressed primitive")
             try:
-                mesh = DracoPy.decode(bytes(blob[start:start + view.byteLength]))
+                mesh = DracoPy.decode(data)
             except Exception as e:  # noqa: BLE001 - DracoPy raises its own errors on corrupt buffers
                 raise RigError(f"{self.path}: a Draco-compressed primitive cannot be decoded "
                                f"({type(e).__name__}: {e})") from None
@@ -359,11 +364,10 @@ class _Gltf:
 
         img = self.gltf.images[index]
         if img.bufferView is not None:
-            view = self.gltf.bufferViews[img.bufferView]
-            blob = self.blobs[view.buffer] if view.buffer < len(self.blobs) else None
-            if blob is None:
-                return None, f"image {index} reads buffer {view.buffer}, which has no data"
-            data = blob[(view.byteOffset or 0):(view.byteOffset or 0) + view.byteLength]
+            try:
+                data = self.view_bytes(img.bufferView, f"image {index}")
+            except RigError as e:
+                return None, str(e)
             source = f"embedded image {index}"
         elif img.uri and img.uri.startswith("data:"):
             import base64

@@ -15,6 +15,25 @@ BLENDER_VARIANTS = ("seam_split", "flat", "centimetres", "posed_action", "parent
 SCRIPT = Path(__file__).with_name("make_variants.py")
 
 
+def _save(gltf: pygltflib.GLTF2, data: bytearray, dst: Path) -> Path:
+    """Write ``gltf`` as a GLB whose binary chunk is ``data`` (padded to 4 bytes)."""
+    while len(data) % 4:
+        data.append(0)
+    gltf.buffers[0].byteLength = len(data)
+    gltf.set_binary_blob(bytes(data))
+    gltf.save_binary(str(dst))
+    return dst
+
+
+def _append(gltf: pygltflib.GLTF2, data: bytearray, arr: np.ndarray) -> int:
+    """Append ``arr``'s bytes as a new buffer view (4-byte aligned); its index."""
+    while len(data) % 4:
+        data.append(0)
+    gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(data), byteLength=arr.nbytes))
+    data.extend(np.ascontiguousarray(arr).tobytes())
+    return len(gltf.bufferViews) - 1
+
+
 def deindex_glb(src: Path, dst: Path) -> Path:
     """Rewrite ``src`` with unindexed triangle primitives (attributes expanded through the indices)."""
     from bat3r_core.rig_io import _read_accessor
@@ -35,11 +54,7 @@ def deindex_glb(src: Path, dst: Path) -> Path:
                     {5121: np.uint8, 5123: np.uint16}[acc.componentType])).max).round()
                 out = np.ascontiguousarray(raw[idx]).astype({5126: np.float32, 5121: np.uint8, 5123: np.uint16,
                                                             5125: np.uint32}[acc.componentType])
-                while len(data) % 4:
-                    data.append(0)
-                gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(data), byteLength=out.nbytes))
-                data.extend(out.tobytes())
-                new = pygltflib.Accessor(bufferView=len(gltf.bufferViews) - 1, componentType=acc.componentType,
+                new = pygltflib.Accessor(bufferView=_append(gltf, data, out), componentType=acc.componentType,
                                          count=len(idx), type=acc.type, normalized=acc.normalized)
                 if name == "POSITION":
                     new.min, new.max = out.min(0).tolist(), out.max(0).tolist()
@@ -47,21 +62,7 @@ def deindex_glb(src: Path, dst: Path) -> Path:
                 setattr(attrs, name, len(gltf.accessors) - 1)
             prim.indices = None
             prim.targets = None
-    while len(data) % 4:
-        data.append(0)
-    gltf.buffers[0].byteLength = len(data)
-    gltf.set_binary_blob(bytes(data))
-    gltf.save_binary(str(dst))
-    return dst
-
-
-def _append(gltf: pygltflib.GLTF2, data: bytearray, arr: np.ndarray) -> int:
-    """Append ``arr``'s bytes as a new buffer view (4-byte aligned); its index."""
-    while len(data) % 4:
-        data.append(0)
-    gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(data), byteLength=arr.nbytes))
-    data.extend(np.ascontiguousarray(arr).tobytes())
-    return len(gltf.bufferViews) - 1
+    return _save(gltf, data, dst)
 
 
 def quantize_glb(src: Path, dst: Path) -> Path:
@@ -113,12 +114,7 @@ def quantize_glb(src: Path, dst: Path) -> Path:
     skin.inverseBindMatrices = len(gltf.accessors) - 1
     gltf.extensionsUsed = sorted(set(gltf.extensionsUsed or []) | {"KHR_mesh_quantization"})
     gltf.extensionsRequired = sorted(set(gltf.extensionsRequired or []) | {"KHR_mesh_quantization"})
-    while len(data) % 4:
-        data.append(0)
-    gltf.buffers[0].byteLength = len(data)
-    gltf.set_binary_blob(bytes(data))
-    gltf.save_binary(str(dst))
-    return dst
+    return _save(gltf, data, dst)
 
 
 def make_variants(source_glb: Path, out_dir: Path) -> dict[str, Path]:

@@ -124,6 +124,7 @@ def test_a_webp_texture_and_a_texture_transform_are_read(toy_rig, toy_glb, tmp_p
     import cv2
 
     from bat3r_core.rig_io import _texture_transform
+    from tests.assets.variants import _append
 
     own = read_asset(toy_glb)[1].texture
     offset, scale = np.array([0.25, -0.5]), np.array([2.0, 0.5])
@@ -131,11 +132,7 @@ def test_a_webp_texture_and_a_texture_transform_are_read(toy_rig, toy_glb, tmp_p
     def webp_and_atlas(gltf, blob):
         ok, webp = cv2.imencode(".webp", own[..., ::-1], [cv2.IMWRITE_WEBP_QUALITY, 101])  # 101: lossless
         assert ok
-        while len(blob) % 4:
-            blob.append(0)
-        gltf.bufferViews.append(pygltflib.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(webp)))
-        blob.extend(webp.tobytes())
-        gltf.images.append(pygltflib.Image(bufferView=len(gltf.bufferViews) - 1, mimeType="image/webp"))
+        gltf.images.append(pygltflib.Image(bufferView=_append(gltf, blob, webp), mimeType="image/webp"))
         gltf.textures[0].source = None  # no PNG fallback: only the extension names the image
         gltf.textures[0].extensions = {"EXT_texture_webp": {"source": len(gltf.images) - 1}}
         gltf.extensionsUsed = ["EXT_texture_webp", "KHR_texture_transform"]
