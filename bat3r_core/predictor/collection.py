@@ -35,7 +35,8 @@ import pyarrow.parquet as pq
 from bat3r_core.shards import STATUS_OK, ShardPaths, shard_paths, write_shard
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".bmp", ".tif", ".tiff")
-MASK_SUFFIX = ".png"
+MASK_SUFFIX = ".png"  # the preferred mask format (lossless)
+MASK_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".webp", ".jpg", ".jpeg")  # looked up in this order
 
 # Statuses of a collection row besides "ok"; the row's ``reason`` names the file and what was expected.
 STATUS_BAD_IMAGE = "bad_image"          # missing, unreadable, truncated, grey-scale, RGBA or not 8-bit
@@ -223,7 +224,9 @@ def list_folder_collection(folder: str | os.PathLike) -> list[CollectionSample]:
     """Samples of a folder collection (``images/`` + ``masks/``), sorted by image file name.
 
     The sample id is the image's stem; where two images share a stem (``a.jpg``, ``a.png``) both use their
-    file name instead. Masks are ``masks/<stem>.png``; a missing one gives ``mask_path=None``.
+    file name instead. The mask is ``masks/<stem>`` with an image suffix in any letter case, a lossless one first
+    (``.png``, then ``.bmp``, ``.tif``, ``.tiff``, ``.webp``, ``.jpg``, ``.jpeg``: ``MASK_SUFFIXES``); none gives
+    ``mask_path=None``.
     """
     folder = Path(folder)
     images_dir, masks_dir = folder / "images", folder / "masks"
@@ -231,13 +234,27 @@ def list_folder_collection(folder: str | os.PathLike) -> list[CollectionSample]:
         raise FileNotFoundError(f"collection folder {folder} has no 'images/' subfolder")
     images = sorted((p for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
                     key=lambda p: p.name)
+    masks = _masks_by_stem(masks_dir)
     stem_count = Counter(p.stem for p in images)
     samples = []
     for p in images:
-        mask = masks_dir / f"{p.stem}{MASK_SUFFIX}"
         sample_id = p.stem if stem_count[p.stem] == 1 else p.name
-        samples.append(CollectionSample(sample_id, p, mask if mask.is_file() else None))
+        samples.append(CollectionSample(sample_id, p, masks.get(p.stem)))
     return samples
+
+
+def _masks_by_stem(masks_dir: Path) -> dict[str, Path]:
+    """The mask file of each stem in ``masks_dir``: where several files share a stem (``a.png``, ``a.jpg``), the
+    one whose suffix comes first in ``MASK_SUFFIXES`` (lossless before JPEG), then by file name."""
+    if not masks_dir.is_dir():
+        return {}
+    rank = {suffix: k for k, suffix in enumerate(MASK_SUFFIXES)}
+    files = sorted((p for p in masks_dir.iterdir() if p.is_file() and p.suffix.lower() in rank),
+                   key=lambda p: (rank[p.suffix.lower()], p.name))
+    found: dict[str, Path] = {}
+    for p in files:
+        found.setdefault(p.stem, p)
+    return found
 
 
 def list_parquet_collection(index_path: str | os.PathLike) -> list[CollectionSample]:
@@ -360,20 +377,77 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_mask(path: str | os.PathLike | None) -> np.ndarray:
-    """Read a mask as (H, W) bool (nonzero = foreground). A multi-channel mask is accepted only when its colour
-    channels are equal (a grey mask saved as RGB); otherwise, or when missing or unreadable, ``BadSample``."""
+    """Read a mask as (H, W) bool; ``BadSample`` when it is missing, unreadable or ambiguous.
+
+    What counts as foreground (``mask_foreground``):
+
+    * a grey-scale mask whose brightest pixel lies in the upper half of its range (above 127 for 8 bits) is an
+      intensity mask: foreground where it is at least half bright (>= 128), so antialiased edges and JPEG noise
+      around a black background do not widen the mask;
+    * any other grey-scale mask is a label mask (0/1 masks, instance ids): nonzero = foreground;
+    * a colour mask is accepted when its colour channels are equal (a grey mask saved as RGB); an RGBA mask whose
+      colour is one flat value everywhere carries the mask in its alpha channel;
+    * an indexed (palette) PNG with a coloured palette (DAVIS, PASCAL VOC annotations) is a label mask: nonzero
+      palette index = foreground, except index 255 (VOC's "void" border) when other labels are present. An indexed
+      PNG whose palette is grey reads as its grey levels.
+    """
     if path is None or not Path(path).is_file():
         raise BadSample(STATUS_MISSING_MASK, f"mask {path} does not exist" if path is not None
                         else "no mask file was found for the image")
     path = Path(path)
+    labels = _palette_labels(path)
+    if labels is not None:
+        return labels
     arr = _decode(path, STATUS_BAD_MASK, "mask")
     if arr.ndim == 3:
         colour = arr[..., :3]
         if colour.shape[2] > 1 and not (colour == colour[..., :1]).all():
             raise BadSample(STATUS_BAD_MASK, f"mask {path} has {arr.shape[2]} differing channels; "
                                              f"expected a single-channel mask (nonzero = foreground)")
-        arr = colour[..., 0]
-    return arr != 0
+        flat_colour = arr.shape[2] == 4 and (colour == colour.flat[0]).all()
+        arr = arr[..., 3] if flat_colour and not (arr[..., 3] == arr[0, 0, 3]).all() else colour[..., 0]
+    return mask_foreground(arr)
+
+
+def mask_foreground(values: np.ndarray) -> np.ndarray:
+    """Foreground of a single-channel mask (see ``read_mask``): an intensity mask (brightest value above half the
+    range: 127 for uint8, 32767 for uint16, 0.5 for floats) thresholded at half the range, a label mask nonzero."""
+    values = np.asarray(values)
+    if values.dtype == bool:
+        return values.copy()
+    half = 0.5 if values.dtype.kind == "f" else np.iinfo(values.dtype).max / 2
+    if values.size and values.max() > half:
+        return values >= half
+    return values != 0
+
+
+def _palette_labels(path: Path) -> np.ndarray | None:
+    """The label mask of an indexed PNG with a coloured palette (see ``read_mask``); None for any other file
+    (grey palettes included), which ``_decode`` then reads."""
+    with path.open("rb") as f:
+        head = f.read(26)
+    if not (head.startswith(_PNG_MAGIC) and head[12:16] == b"IHDR" and head[25] == 3):  # colour type 3: indexed
+        return None
+    data = path.read_bytes()
+    problem = _truncation_problem(data)
+    if problem:
+        raise BadSample(STATUS_BAD_MASK, f"mask {path} is truncated or corrupt: {problem}")
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            index = np.asarray(im)
+            palette = np.asarray(im.getpalette() or [], np.int64).reshape(-1, 3)
+    except Exception as e:  # noqa: BLE001 - Pillow raises several types for broken files
+        raise BadSample(STATUS_BAD_MASK, f"mask {path} is not a readable image ({type(e).__name__})") from None
+    used = np.unique(index)
+    colours = palette[used[used < len(palette)]]
+    if len(colours) and (colours == colours[:, :1]).all():
+        return None  # a grey palette: the grey levels are the mask
+    labels = index != 0
+    if (used == 255).any() and (used[(used != 0) & (used != 255)]).size:
+        labels &= index != 255
+    return labels
 
 
 EXIF_ORIENTATION_TAG = 0x0112

@@ -333,3 +333,80 @@ def test_shared_stems_and_missing_image(tmp_path):
     rows = read_table(out).to_pylist()
     assert [r["status"] for r in rows] == ["ok", "ok", "bad_image"]
     assert re.search(r"image .*ghost\.jpg does not exist", rows[2]["reason"])
+
+
+def test_masks_as_annotation_tools_write_them(tmp_path):
+    """Soft and JPEG masks are cut at half brightness, label masks (0/1, instance ids) are nonzero, coloured palette
+    PNGs (DAVIS, VOC) are read by palette index with VOC's void border left out, grey palettes by their grey levels,
+    and a flat-coloured RGBA mask by its alpha; a folder's masks are found by stem in any image format and case."""
+    from PIL import Image
+
+    from bat3r_core.predictor.collection import mask_foreground, read_mask
+
+    truth = _blob_mask(48, 64) > 0
+    yy, xx = np.mgrid[:48, :64]
+    ring = (np.abs(yy - 8) <= 2) | (np.abs(yy - 41) <= 2) | (np.abs(xx - 10) <= 2) | (np.abs(xx - 54) <= 2)
+    soft = np.where(truth, 255, 0).astype(np.uint8)
+    soft[ring & ~truth] = 60  # a dim antialiased fringe outside the object
+    soft[ring & truth] = 200  # a bright one inside it
+    _write(tmp_path / "soft.png", soft)
+    assert np.array_equal(read_mask(tmp_path / "soft.png"), truth)
+    _write(tmp_path / "lossy.jpg", np.where(truth, 255, 0).astype(np.uint8))  # JPEG ringing around the edges
+    noisy = cv2.imread(str(tmp_path / "lossy.jpg"), cv2.IMREAD_UNCHANGED)
+    assert ((noisy != 0) & ~truth).sum() > 20  # nonzero would widen this mask
+    assert (read_mask(tmp_path / "lossy.jpg") != truth).sum() <= 4
+    ids = np.zeros((48, 64), np.uint8)
+    ids[truth] = 1
+    ids[10:20, 12:30] = 2  # two instance ids: both are the object
+    _write(tmp_path / "ids.png", ids)
+    assert np.array_equal(read_mask(tmp_path / "ids.png"), truth)
+    deep = np.where(truth, 65535, 0).astype(np.uint16)
+    deep[ring & ~truth] = 9000
+    _write(tmp_path / "deep.png", deep)
+    assert np.array_equal(read_mask(tmp_path / "deep.png"), truth)
+    assert np.array_equal(mask_foreground(np.where(truth, 0.9, 0.2).astype(np.float32)), truth)
+
+    # indexed PNGs: a DAVIS-like coloured palette, a VOC one with its void border (255), a grey one (white = 0)
+    davis = Image.fromarray(ids, mode="P")
+    davis.putpalette([0, 0, 0, 128, 0, 0, 0, 128, 0] + [0] * 759)
+    davis.save(tmp_path / "davis.png")
+    assert np.array_equal(read_mask(tmp_path / "davis.png"), truth)
+    voc = np.where(truth, 13, 0).astype(np.uint8)
+    voc[ring & ~truth] = 255
+    im = Image.fromarray(voc, mode="P")
+    im.putpalette([0, 0, 0] * 13 + [192, 128, 128] + [0, 0, 0] * 241 + [224, 224, 192])
+    im.save(tmp_path / "voc.png")
+    assert np.array_equal(read_mask(tmp_path / "voc.png"), truth)
+    inverted = Image.fromarray(np.where(truth, 1, 0).astype(np.uint8), mode="P")
+    inverted.putpalette([255, 255, 255, 0, 0, 0] + [0] * 762)  # index 0 white: a black object on white
+    inverted.save(tmp_path / "grey_palette.png")
+    assert np.array_equal(read_mask(tmp_path / "grey_palette.png"), ~truth)  # grey levels, as before: no guess
+    data = (tmp_path / "davis.png").read_bytes()
+    (tmp_path / "torn.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(BadSample, match=r"mask .*torn\.png is truncated or corrupt"):
+        read_mask(tmp_path / "torn.png")
+
+    rgba = np.zeros((48, 64, 4), np.uint8)  # black everywhere, the object in the alpha channel
+    rgba[..., 3] = np.where(truth, 255, 0)
+    _write(tmp_path / "cutout.png", rgba)
+    assert np.array_equal(read_mask(tmp_path / "cutout.png"), truth)
+    rgba[..., :3] = np.where(truth, 255, 0)[..., None]  # a grey mask with an opaque alpha: the grey levels
+    rgba[..., 3] = 255
+    _write(tmp_path / "opaque.png", rgba)
+    assert np.array_equal(read_mask(tmp_path / "opaque.png"), truth)
+
+    root = tmp_path / "c"
+    (root / "images").mkdir(parents=True)
+    (root / "masks").mkdir()
+    img = np.full((48, 64, 3), 90, np.uint8)
+    for stem in ("a", "b", "c", "d"):
+        _write(root / "images" / f"{stem}.jpg", img)
+    _write(root / "masks" / "a.jpg", soft)  # JPEG only
+    _write(root / "masks" / "b.PNG", soft)  # upper-case suffix
+    _write(root / "masks" / "b.jpg", np.zeros_like(soft))  # the lossless one wins
+    _write(root / "masks" / "c.tif", soft)
+    samples = {s.sample_id: s for s in list_collection(root)}
+    assert {k: s.mask_path.name if s.mask_path else None for k, s in samples.items()} == {
+        "a": "a.jpg", "b": "b.PNG", "c": "c.tif", "d": None}
+    for stem in ("a", "b", "c"):
+        assert (load_sample(samples[stem])[1] != truth).sum() <= 4, stem
