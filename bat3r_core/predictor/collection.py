@@ -35,6 +35,12 @@ import pyarrow.parquet as pq
 from bat3r_core.shards import STATUS_OK, ShardPaths, shard_paths, write_shard
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".webp", ".bmp", ".tif", ".tiff")
+# Photo formats bat3r does not decode: listed anyway, so each is recorded as a bad image that says how to convert it
+# instead of vanishing from the collection.
+UNREADABLE_IMAGE_FORMATS = {".heic": "HEIC/HEIF", ".heif": "HEIC/HEIF", ".avif": "AVIF", ".gif": "GIF",
+                            ".jxl": "JPEG XL", ".dng": "camera raw (DNG)", ".cr2": "camera raw (CR2)",
+                            ".cr3": "camera raw (CR3)", ".nef": "camera raw (NEF)", ".arw": "camera raw (ARW)",
+                            ".orf": "camera raw (ORF)", ".rw2": "camera raw (RW2)", ".raf": "camera raw (RAF)"}
 MASK_SUFFIX = ".png"  # the preferred mask format (lossless)
 MASK_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".webp", ".jpg", ".jpeg")  # looked up in this order
 
@@ -232,7 +238,8 @@ def list_folder_collection(folder: str | os.PathLike) -> list[CollectionSample]:
     images_dir, masks_dir = folder / "images", folder / "masks"
     if not images_dir.is_dir():
         raise FileNotFoundError(f"collection folder {folder} has no 'images/' subfolder")
-    images = sorted((p for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES),
+    listed = set(IMAGE_SUFFIXES) | set(UNREADABLE_IMAGE_FORMATS)
+    images = sorted((p for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in listed),
                     key=lambda p: p.name)
     masks = _masks_by_stem(masks_dir)
     stem_count = Counter(p.stem for p in images)
@@ -362,6 +369,10 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise BadSample(STATUS_BAD_IMAGE, f"image {path} does not exist")
+    unreadable = UNREADABLE_IMAGE_FORMATS.get(path.suffix.lower())
+    if unreadable:
+        raise BadSample(STATUS_BAD_IMAGE, f"image {path} is {unreadable}, which bat3r does not decode; expected "
+                                          f"{', '.join(IMAGE_SUFFIXES)} (convert it to JPEG or PNG)")
     arr = _decode(path, STATUS_BAD_IMAGE, "image")
     if arr.dtype != np.uint8:
         raise BadSample(STATUS_BAD_IMAGE, f"image {path} has dtype {arr.dtype}; expected 8-bit RGB")

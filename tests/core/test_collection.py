@@ -214,6 +214,8 @@ def bad_collection(tmp_path):
     colour_mask[10:30, 10:30, 2] = 255
     _write(images / "colour_mask.jpg", img)
     _write(masks / "colour_mask.png", colour_mask)
+    (images / "phone.HEIC").write_bytes(b"\x00\x00\x00\x18ftypheic" + bytes(64))  # listed, recorded, not decoded
+    _write(masks / "phone.png", mask)
     (images / "notes.txt").write_text("not an image")
     return root
 
@@ -235,6 +237,8 @@ EXPECTED = {
     "garbage": ("bad_image", r"image .*garbage\.jpg is not a readable image"),
     "deep": ("bad_image", r"image .*deep\.png has dtype uint16; expected 8-bit RGB"),
     "colour_mask": ("bad_mask", r"mask .*colour_mask\.png has 3 differing channels; expected a single-channel"),
+    "phone": ("bad_image", r"image .*phone\.HEIC is HEIC/HEIF, which bat3r does not decode; expected \.jpg, .* "
+                           r"\(convert it to JPEG or PNG\)"),
 }
 
 
@@ -284,7 +288,7 @@ def test_sharding_is_deterministic_and_resumable(bad_collection, tmp_path):
     (a / "part-00001.parquet").unlink()
     before = (a / "part-00000.parquet").stat().st_mtime_ns
     write_collection_shards(bad_collection, a, cfg)
-    assert list_shards(a) == [0, 1, 2] and (a / "part-00000.parquet").stat().st_mtime_ns == before
+    assert list_shards(a) == [0, 1, 2, 3] and (a / "part-00000.parquet").stat().st_mtime_ns == before
 
 
 def test_parquet_index(bad_collection, tmp_path):
