@@ -28,7 +28,7 @@ from .shards import atomic_write
 
 __all__ = ["PreparedAsset", "prepare_asset", "BodyFrameProposal", "propose_body_frame", "ASSET_FORMAT_VERSION"]
 
-ASSET_FORMAT_VERSION = 2
+ASSET_FORMAT_VERSION = 3
 """Bumped when the normalisation changes, so that normalised GLBs written by older code are rebuilt. 2: quantized
 positions dequantized, Draco decoded, textures named by extensions and through KHR_texture_transform, skin weights
 normalised."""

@@ -141,6 +141,102 @@ def _texture_transform(uv: np.ndarray, transform: dict) -> np.ndarray:
     return offset + (uv * scale) @ rot.T
 
 
+_ATLAS_TILE = 1024  # the largest tile side of a base-colour atlas (512 beyond four materials)
+
+
+def _srgb_times_factor(image: np.ndarray, factor: np.ndarray) -> np.ndarray:
+    """An sRGB uint8 image times a linear base-colour factor, as glTF shades it (texture decoded to linear)."""
+    lin = (image.astype(np.float64) / 255.0) ** 2.2 * np.clip(factor[:3], 0.0, 1.0)
+    return np.clip(np.round(lin ** (1 / 2.2) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _material_colour(g: "_Gltf", material: int | None) -> tuple[np.ndarray | None, str, int, dict]:
+    """Base colour of ``material`` (None: glTF's default material): (the texture image times the base-colour
+    factor, or a 4x4 tile of the factor where there is no texture (None when that is white and no material); a
+    description; the texCoord set the texture is sampled with; its ``KHR_texture_transform``)."""
+    if material is None:
+        return None, "no material (glTF's default: white)", 0, {}
+    pbr = g.gltf.materials[material].pbrMetallicRoughness
+    factor = np.asarray(pbr.baseColorFactor if pbr is not None and pbr.baseColorFactor is not None
+                        else (1.0, 1.0, 1.0, 1.0), dtype=np.float64)
+    colour_map = pbr.baseColorTexture if pbr is not None else None
+    if colour_map is not None:
+        transform = (colour_map.extensions or {}).get("KHR_texture_transform") or {}
+        channel = int(transform.get("texCoord", colour_map.texCoord or 0))
+        tex = g.gltf.textures[colour_map.index]
+        # the image itself, or one an extension names (EXT_texture_webp, KHR_texture_basisu, ...): the first
+        # that decodes
+        images = [e.get("source") for e in (tex.extensions or {}).values() if isinstance(e, dict)] + [tex.source]
+        texture, source = None, "the texture names no image"
+        for k in dict.fromkeys(i for i in images if i is not None):
+            texture, source = g.image(int(k))
+            if texture is not None:
+                break
+        if texture is None:
+            return None, source, channel, transform  # why it did not decode: the asset check reports it
+        if not np.allclose(factor[:3], 1.0):
+            texture = _srgb_times_factor(texture, factor)
+            source += f" times base-colour factor {tuple(round(float(x), 4) for x in factor[:3])}"
+        return texture, source, channel, transform
+    colour = np.clip(np.round(np.clip(factor[:3], 0, 1) ** (1 / 2.2) * 255), 0, 255).astype(np.uint8)
+    return np.tile(colour, (4, 4, 1)), f"base-colour factor of material {material}", 0, {}
+
+
+def _base_colour_atlas(g: "_Gltf", parts: list[tuple[int | None, dict[int, np.ndarray], int]],
+                       faces_per_material: dict[int | None, int]) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
+    """One base-colour image for a mesh whose primitives use several materials: each material's colour (texture
+    times factor, or its flat factor) resized into a square tile of a grid, and every primitive's UVs (through
+    its material's texCoord set and ``KHR_texture_transform``, wrapped into [0, 1) as glTF's repeat mode samples
+    them) mapped into its tile, one texel inside the tile's border; a primitive without a texture or UVs gets its
+    tile's centre. ``parts``: per primitive in vertex order (material, UV sets, vertex count).
+    Returns (atlas (H, W, 3) uint8, UVs (V, 2) in glTF orientation (origin top-left), description, notes)."""
+    import cv2
+
+    order = sorted(faces_per_material, key=lambda m: (-faces_per_material[m], -1 if m is None else m))
+    colours = {m: _material_colour(g, m) for m in order}
+    white = np.full((4, 4, 3), 255, np.uint8)
+    sizes = [max(c[0].shape[:2]) for c in colours.values() if c[0] is not None and c[0].shape[0] > 4]
+    tile = min(max(sizes, default=64), _ATLAS_TILE if len(order) <= 4 else _ATLAS_TILE // 2)
+    cols = int(np.ceil(np.sqrt(len(order))))
+    rows = int(np.ceil(len(order) / cols))
+    atlas = np.full((rows * tile, cols * tile, 3), 128, np.uint8)
+    place = {}
+    for k, m in enumerate(order):
+        img = colours[m][0] if colours[m][0] is not None else white
+        r, c = divmod(k, cols)
+        interp = cv2.INTER_AREA if max(img.shape[:2]) > tile else cv2.INTER_LINEAR
+        atlas[r * tile:(r + 1) * tile, c * tile:(c + 1) * tile] = cv2.resize(img, (tile, tile), interpolation=interp)
+        place[m] = (c, r)
+    height, width = atlas.shape[:2]
+    uv_parts, wrapped = [], 0
+    for m, uv_sets, count in parts:
+        if m not in place:  # a primitive without triangles: any UV will do
+            uv_parts.append(np.full((count, 2), 0.5 / cols))
+            continue
+        c, r = place[m]
+        texture, _, channel, transform = colours[m]
+        if texture is not None and texture.shape[0] > 4 and channel in uv_sets:
+            uv = uv_sets[channel]
+            if transform:
+                uv = _texture_transform(uv, transform)
+            outside = (uv < 0.0) | (uv > 1.0)
+            wrapped += int(outside.any(1).sum())
+            uv = np.where(outside, uv - np.floor(uv), uv)
+        else:
+            uv = np.full((count, 2), 0.5)
+        uv_parts.append(np.c_[(c * tile + 1 + uv[:, 0] * (tile - 2)) / width,
+                              (r * tile + 1 + uv[:, 1] * (tile - 2)) / height])
+    notes = [f"{len(order)} materials: their base colours are packed into one {width}x{height} atlas "
+             f"({tile} px tiles, materials {', '.join('default' if m is None else str(m) for m in order)} row by "
+             f"row) and the UVs remapped to it; a category's own `textures` must follow this layout (the asset "
+             f"check's contact sheet shows it)"]
+    if wrapped:
+        notes.append(f"{wrapped} vertices have UVs outside [0, 1] (a repeating texture): wrapped into their tile, "
+                     f"so a triangle that crosses a repeat boundary samples across its tile")
+    source = "atlas of " + "; ".join(f"{'default' if m is None else m}: {colours[m][1]}" for m in order)
+    return atlas, np.concatenate(uv_parts), source, notes
+
+
 def _parents_of_nodes(gltf: pygltflib.GLTF2, path: Path) -> list[int]:
     parent = [-1] * len(gltf.nodes)
     for i, node in enumerate(gltf.nodes):
@@ -550,7 +646,8 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     verts, faces, uv_sets, weights, report, notes = [], [], [], [], [], []
     weight_sums: list[float] = []  # the sums of the vertices whose weights did not sum to 1 (normalised)
     n_unweighted = 0
-    material_faces: dict[int, int] = {}
+    material_faces: dict[int | None, int] = {}  # faces per material (None: primitives without one)
+    parts: list[tuple[int | None, dict[int, np.ndarray], int]] = []  # per primitive: material, UV sets, vertices
     offset, n_targets, morph_w = 0, 0, []
     for n in mesh_nodes:
         node = gltf.nodes[n]
@@ -596,8 +693,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
             if tri.size and tri.max() >= len(pos):
                 raise RigError(f"{path}: {label} indexes vertex {tri.max()} of {len(pos)}")
             faces.append(tri + offset)
-            if prim.material is not None:
-                material_faces[prim.material] = material_faces.get(prim.material, 0) + len(tri)
+            material_faces[prim.material] = material_faces.get(prim.material, 0) + len(tri)
             ph = np.c_[pos, np.ones(len(pos))]
             if node.skin is not None:
                 w_local = _primitive_weights(g, prim, label, len(other_joints))
@@ -627,23 +723,29 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
             weights.append(w)
             uv_sets.append({k: g.attribute(prim, f"TEXCOORD_{k}").astype(np.float64)
                             for k in (0, 1) if getattr(prim.attributes, f"TEXCOORD_{k}", None) is not None})
+            parts.append((prim.material, uv_sets[-1], len(pos)))
             offset += len(pos)
         report.append((label_node, f"{how}: {offset - n_before} vertices"))
     if not verts:
         why = "; ".join(f"'{n}': {what}" for n, what in report)
         raise RigError(f"{path}: no usable mesh (a skinned surface, or one rigidly below a joint) in the default "
                        f"scene{': ' + why if why else ''}")
-    dominant = max(material_faces, key=lambda m: (material_faces[m], -m)) if material_faces else None
-    pbr = gltf.materials[dominant].pbrMetallicRoughness if dominant is not None else None
-    colour_map = pbr.baseColorTexture if pbr is not None else None
-    transform = ((colour_map.extensions or {}).get("KHR_texture_transform") if colour_map is not None else None) or {}
-    channel = int(transform.get("texCoord", colour_map.texCoord or 0) if colour_map is not None else 0)
-    uv = None
-    if uv_sets and all(channel in u for u in uv_sets):  # the UV set the base-colour texture is sampled with
-        uv = np.concatenate([u[channel] for u in uv_sets])
-        if transform:
-            uv = _texture_transform(uv, transform)
-            notes.append(f"the base-colour texture's KHR_texture_transform {transform} is applied to the UVs")
+    uv, texture, source = None, None, "the file has no base-colour texture"
+    used = [m for m in material_faces if material_faces[m] > 0]
+    if len(used) > 1:  # several materials: one atlas of their base colours, the UVs remapped into it
+        texture, uv, source, atlas_notes = _base_colour_atlas(g, parts, {m: material_faces[m] for m in used})
+        notes.extend(atlas_notes)
+    elif used:
+        texture, colour_source, channel, transform = _material_colour(g, used[0])
+        if texture is not None or used[0] is not None:
+            source = colour_source
+        if uv_sets and all(channel in u for u in uv_sets):  # the UV set the base-colour texture is sampled with
+            uv = np.concatenate([u[channel] for u in uv_sets])
+            if transform:
+                uv = _texture_transform(uv, transform)
+                notes.append(f"the base-colour texture's KHR_texture_transform {transform} is applied to the UVs")
+    if uv is not None:
+        uv = uv.copy()
         uv[:, 1] = 1.0 - uv[:, 1]  # glTF's UV origin is top-left; bat3r stores OpenGL-style (origin bottom-left)
     rest = np.stack([_rigid_part(b) for b in bind])
     try:
@@ -651,23 +753,6 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                                  np.asarray(parents), rest, np.concatenate(weights), uvs=uv)
     except RigError as e:
         raise RigError(f"{path}: {e}") from None
-    texture, source = None, "the file has no base-colour texture"
-    if material_faces:
-        if colour_map is not None:
-            tex = gltf.textures[colour_map.index]
-            # the image itself, or one an extension names (EXT_texture_webp, KHR_texture_basisu, ...): the first
-            # that decodes
-            images = [e.get("source") for e in (tex.extensions or {}).values() if isinstance(e, dict)] + [tex.source]
-            for k in dict.fromkeys(i for i in images if i is not None):
-                texture, source = g.image(int(k))
-                if texture is not None:
-                    break
-        elif pbr is not None and pbr.baseColorFactor is not None:
-            colour = np.clip(np.asarray(pbr.baseColorFactor[:3]) ** (1 / 2.2) * 255, 0, 255).astype(np.uint8)
-            texture, source = np.tile(colour, (4, 4, 1)), f"base-colour factor of material {dominant}"
-        if len(material_faces) > 1:
-            notes.append(f"{len(material_faces)} materials; the base colour of the one on the most faces "
-                         f"(material {dominant}) is used for the whole mesh")
     if weight_sums:
         notes.append(f"the skin weights of {len(weight_sums)} vertices summed to {min(weight_sums):.4g}-"
                      f"{max(weight_sums):.4g}, not 1; normalised, as glTF viewers and Blender do")

@@ -1,6 +1,7 @@
-"""Third-party-like variants of the toy asset for tests: Blender exports (``make_variants.py``) plus two rewrites:
-unindexed (every triangle its own three vertices, like the Khronos Fox) and quantized (integer positions and
-weights with the dequantization in the inverse bind matrices, as gltfpack and gltf-transform write them)."""
+"""Third-party-like variants of the toy asset for tests: Blender exports (``make_variants.py``) plus three rewrites:
+unindexed (every triangle its own three vertices, like the Khronos Fox), quantized (integer positions and
+weights with the dequantization in the inverse bind matrices, as gltfpack and gltf-transform write them) and
+materials (three primitives with their own materials: textured, textured through a transform, flat colour)."""
 from __future__ import annotations
 
 import subprocess
@@ -34,6 +35,24 @@ def _append(gltf: pygltflib.GLTF2, data: bytearray, arr: np.ndarray) -> int:
     return len(gltf.bufferViews) - 1
 
 
+def _copy_rows(gltf: pygltflib.GLTF2, blob: bytes, data: bytearray, index: int, rows: np.ndarray, src: Path) -> int:
+    """Append a copy of accessor ``index`` holding only ``rows`` (stored type kept); the new accessor's index."""
+    from bat3r_core.rig_io import _read_accessor
+
+    acc = gltf.accessors[index]
+    arr = _read_accessor(gltf, blob, index, src)
+    raw = arr if not acc.normalized else (arr * np.iinfo(np.dtype(
+        {5121: np.uint8, 5123: np.uint16}[acc.componentType])).max).round()
+    out = np.ascontiguousarray(raw[rows]).astype({5126: np.float32, 5121: np.uint8, 5123: np.uint16,
+                                                  5125: np.uint32}[acc.componentType])
+    new = pygltflib.Accessor(bufferView=_append(gltf, data, out), componentType=acc.componentType,
+                             count=len(out), type=acc.type, normalized=acc.normalized)
+    if acc.min is not None:
+        new.min, new.max = out.min(0).tolist(), out.max(0).tolist()
+    gltf.accessors.append(new)
+    return len(gltf.accessors) - 1
+
+
 def deindex_glb(src: Path, dst: Path) -> Path:
     """Rewrite ``src`` with unindexed triangle primitives (attributes expanded through the indices)."""
     from bat3r_core.rig_io import _read_accessor
@@ -48,18 +67,7 @@ def deindex_glb(src: Path, dst: Path) -> Path:
             idx = _read_accessor(gltf, blob, prim.indices, src).reshape(-1).astype(np.int64)
             attrs = prim.attributes
             for name in [k for k, v in vars(attrs).items() if isinstance(v, int)]:
-                acc = gltf.accessors[getattr(attrs, name)]
-                arr = _read_accessor(gltf, blob, getattr(attrs, name), src)
-                raw = arr if not acc.normalized else (arr * np.iinfo(np.dtype(
-                    {5121: np.uint8, 5123: np.uint16}[acc.componentType])).max).round()
-                out = np.ascontiguousarray(raw[idx]).astype({5126: np.float32, 5121: np.uint8, 5123: np.uint16,
-                                                            5125: np.uint32}[acc.componentType])
-                new = pygltflib.Accessor(bufferView=_append(gltf, data, out), componentType=acc.componentType,
-                                         count=len(idx), type=acc.type, normalized=acc.normalized)
-                if name == "POSITION":
-                    new.min, new.max = out.min(0).tolist(), out.max(0).tolist()
-                gltf.accessors.append(new)
-                setattr(attrs, name, len(gltf.accessors) - 1)
+                setattr(attrs, name, _copy_rows(gltf, blob, data, getattr(attrs, name), idx, src))
             prim.indices = None
             prim.targets = None
     return _save(gltf, data, dst)
@@ -117,8 +125,61 @@ def quantize_glb(src: Path, dst: Path) -> Path:
     return _save(gltf, data, dst)
 
 
+def split_materials_glb(src: Path, dst: Path) -> tuple[Path, np.ndarray]:
+    """Rewrite ``src`` (one textured primitive) as a game asset is often cut: the front third of the triangles
+    (along +Z) a second primitive with its own material and texture (a checker, sampled through texCoord 0 with a
+    ``KHR_texture_transform`` offset), the lowest fifth a third one with a flat red base-colour factor and no UVs.
+    Returns the path and the checker image (RGB)."""
+    import cv2
+
+    from bat3r_core.rig_io import _read_accessor
+
+    gltf = pygltflib.GLTF2().load(str(src))
+    blob = gltf.binary_blob()
+    data = bytearray(blob)
+    mesh = next(m for m in gltf.meshes if m.primitives)
+    (prim,) = mesh.primitives
+    idx = _read_accessor(gltf, blob, prim.indices, src).reshape(-1, 3).astype(np.int64)
+    pos = _read_accessor(gltf, blob, prim.attributes.POSITION, src).astype(np.float64)
+    centre = pos[idx].mean(1)
+    low = centre[:, 1] < np.quantile(centre[:, 1], 0.2)
+    front = ~low & (centre[:, 2] > np.quantile(centre[:, 2], 2 / 3))
+    checker = np.zeros((64, 64, 3), np.uint8)
+    checker[(np.arange(64)[:, None] // 8 + np.arange(64)[None] // 8) % 2 == 0] = (20, 60, 230)
+    checker[(np.arange(64)[:, None] // 8 + np.arange(64)[None] // 8) % 2 == 1] = (240, 220, 40)
+    ok, png = cv2.imencode(".png", checker[..., ::-1])
+    assert ok
+    gltf.images.append(pygltflib.Image(bufferView=_append(gltf, data, np.frombuffer(png.tobytes(), np.uint8)),
+                                       mimeType="image/png"))
+    gltf.textures.append(pygltflib.Texture(source=len(gltf.images) - 1))
+    info = pygltflib.TextureInfo(index=len(gltf.textures) - 1, texCoord=0)
+    info.extensions = {"KHR_texture_transform": {"offset": [0.125, 0.0]}}  # one checker square
+    gltf.materials.append(pygltflib.Material(name="head", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+        baseColorTexture=info)))
+    gltf.materials.append(pygltflib.Material(name="hooves", pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+        baseColorFactor=[1.0, 0.0, 0.0, 1.0])))
+    gltf.extensionsUsed = sorted(set(gltf.extensionsUsed or []) | {"KHR_texture_transform"})
+    primitives = []
+    for material, keep in ((prim.material, ~front & ~low), (len(gltf.materials) - 2, front),
+                           (len(gltf.materials) - 1, low)):
+        tri = idx[keep]
+        used, local = np.unique(tri, return_inverse=True)
+        attrs = pygltflib.Attributes()
+        for name in [k for k, v in vars(prim.attributes).items() if isinstance(v, int)]:
+            if name.startswith("TEXCOORD") and material == len(gltf.materials) - 1:
+                continue  # the flat red part has no UVs
+            setattr(attrs, name, _copy_rows(gltf, blob, data, getattr(prim.attributes, name), used, src))
+        ind = local.reshape(-1).astype(np.uint32)
+        gltf.accessors.append(pygltflib.Accessor(bufferView=_append(gltf, data, ind), count=len(ind),
+                                                 componentType=pygltflib.UNSIGNED_INT, type="SCALAR"))
+        primitives.append(pygltflib.Primitive(attributes=attrs, indices=len(gltf.accessors) - 1,
+                                              material=material))
+    mesh.primitives = primitives
+    return _save(gltf, data, dst), checker
+
+
 def make_variants(source_glb: Path, out_dir: Path) -> dict[str, Path]:
-    """All variants of ``source_glb`` in ``out_dir``: the Blender ones, ``unindexed`` and ``quantized``."""
+    """All variants of ``source_glb`` in ``out_dir``: the Blender ones, ``unindexed``, ``quantized``, ``materials``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     proc = subprocess.run([sys.executable, str(SCRIPT), str(source_glb), str(out_dir), *BLENDER_VARIANTS],
                           capture_output=True, text=True, timeout=600)
@@ -127,4 +188,5 @@ def make_variants(source_glb: Path, out_dir: Path) -> dict[str, Path]:
     paths = {name: out_dir / f"{name}.glb" for name in BLENDER_VARIANTS}
     paths["unindexed"] = deindex_glb(paths["flat"], out_dir / "unindexed.glb")
     paths["quantized"] = quantize_glb(source_glb, out_dir / "quantized.glb")
+    paths["materials"] = split_materials_glb(source_glb, out_dir / "materials.glb")[0]
     return paths

@@ -20,7 +20,7 @@ from bat3r_core.rig import RigError
 from bat3r_core.rig_io import load_rig, read_asset, save_rig_glb, up_axis_rotation
 from bat3r_core.skinning import skin
 from bat3r_core.toy import TOY_BODY_FRAME, toy_coat_texture
-from tests.assets.variants import make_variants
+from tests.assets.variants import make_variants, split_materials_glb
 
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "assets"
 FOX = SHARED / "fox" / "Fox.glb"
@@ -146,6 +146,47 @@ def test_a_rigid_child_mesh_is_skinned_to_its_joint(variants, toy_rig):
 
 
 @pytest.mark.blender
+def test_several_materials_share_one_base_colour_atlas(toy_rig, tmp_path):
+    """Three primitives with their own materials (the toy's coat; a checker through a texture transform; a flat red
+    factor without UVs) read as one rig whose UVs sample, from one atlas, the colour each material shows."""
+    coat = toy_coat_texture("bay", size=256)
+    src = save_rig_glb(toy_rig, tmp_path / "toy.glb", texture=coat)
+    path, checker = split_materials_glb(src, tmp_path / "materials.glb")
+    toy, _ = read_asset(src)
+    rig, info = read_asset(path)
+    assert _same_points(rig.rest_vertices, toy_rig.rest_vertices) < 1e-6
+    atlas = info.texture
+    assert atlas.shape == (512, 512, 3)  # three 256 px tiles in a 2 x 2 grid, the coat (most faces) first
+    assert info.texture_source.startswith("atlas of 0: embedded image 0; 1: embedded image 1; 2: base-colour factor")
+    assert any("3 materials: their base colours are packed into one 512x512 atlas" in n for n in info.notes)
+
+    def sample(image, uv):  # nearest texel at bat3r's UVs (origin bottom-left)
+        h, w = image.shape[:2]
+        return image[np.clip(((1 - uv[:, 1]) * h).astype(int), 0, h - 1), np.clip((uv[:, 0] * w).astype(int), 0, w - 1)]
+
+    g = pygltflib.GLTF2().load(str(path))
+    counts = [g.accessors[p.attributes.POSITION].count for p in g.meshes[0].primitives]
+    body, head, hooves = np.split(np.arange(rig.num_vertices), np.cumsum(counts)[:-1])
+    near = cKDTree(toy.rest_vertices).query(rig.rest_vertices[body])[1]  # the same vertex in the one-material file
+    coat_here = sample(coat, toy.uvs[near]).astype(int)
+    assert np.median(np.abs(sample(atlas, rig.uvs[body]).astype(int) - coat_here)) <= 6
+    uv_head = toy.uvs[cKDTree(toy.rest_vertices).query(rig.rest_vertices[head])[1]].copy()
+    uv_head[:, 0] += 0.125  # the head's KHR_texture_transform offset, in the checker's own UV space
+    uv_head[:, 1] = 1 - ((1 - uv_head[:, 1]) % 1.0)
+    uv_head[:, 0] %= 1.0
+    blue = (sample(checker, uv_head)[:, 2] > 128)  # which checker square each vertex falls in
+    got = sample(atlas, rig.uvs[head]).astype(int)
+    nearer_blue = np.abs(got - (20, 60, 230)).sum(1) < np.abs(got - (240, 220, 40)).sum(1)
+    texel = np.c_[uv_head[:, 0], 1 - uv_head[:, 1]] * 64  # checker texels (8 per square)
+    edge = np.minimum(texel % 8, 8 - texel % 8).min(1)
+    assert np.mean(nearer_blue == blue) > 0.95 and (edge[nearer_blue != blue] < 0.3).all()  # misses: on edges
+    assert (sample(atlas, rig.uvs[hooves]) == (255, 0, 0)).all()
+    prepared = prepare_asset(path, tmp_path / "prepared")  # the normalised GLB keeps the atlas and its UVs
+    again, again_info = read_asset(prepared.path)
+    assert np.abs(again_info.texture.astype(int) - atlas.astype(int)).max() <= 1
+    assert np.abs(again.uvs - rig.uvs).max() < 1e-6
+
+
 def test_the_body_frame_proposal_finds_the_toys_catalog_frame(toy_rig, variants):
     p = propose_body_frame(toy_rig)
     assert p.as_spec() == {"origin": TOY_BODY_FRAME["origin"], "forward": list(TOY_BODY_FRAME["forward"]),
@@ -187,7 +228,7 @@ def _assert_check_passes(report):
 
 @pytest.mark.blender
 @pytest.mark.parametrize("name", ["seam_split", "unindexed", "centimetres", "posed_action", "parent_node", "morph",
-                                  "rigid_child", "quantized", "draco"])
+                                  "rigid_child", "quantized", "draco", "materials"])
 def test_asset_check_passes_on_the_toy_variants(variants, name, tmp_path):
     report = check_asset(variants[name], tmp_path, scale=0.01 if name == "centimetres" else 1.0, resolution=64,
                          importer=name in ("seam_split", "parent_node", "posed_action"))
