@@ -320,6 +320,23 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_collection_coco(args: argparse.Namespace) -> int:
+    from .predictor.coco import CONVERSION_FILE, coco_to_collection
+
+    try:
+        conv = coco_to_collection(args.annotations, args.images, args.category, args.out, min_area=args.min_area,
+                                  largest_only=args.largest_only)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"{conv.samples} samples from {conv.images} images: {conv.index} (masks in {args.out / 'masks'})")
+    for reason, n in sorted(conv.skipped.items(), key=lambda t: -t[1]):
+        print(f"  skipped {n}: {reason} (e.g. annotation {', '.join(map(str, conv.examples[reason]))})")
+    print(f"details: {args.out / CONVERSION_FILE}; use it in the catalog as collection: {{kind: parquet, path: "
+          f"{conv.index}}}")
+    return 0
+
+
 def _cmd_collection_toy(args: argparse.Namespace) -> int:
     from .catalog import load_catalog
     from .generated_collections import collection_toy_command
@@ -444,7 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
     _catalog_option(rd)
     rd.set_defaults(func=_cmd_render)
 
-    col = sub.add_parser("collection", help="synthesise image collections")
+    col = sub.add_parser("collection", help="synthesise image collections, or convert COCO annotations")
     col_sub = col.add_subparsers(dest="collection_command", required=True)
     ct = col_sub.add_parser("toy", help="render the toy in natural poses into images/ + masks/ (+ hidden truth)")
     ct.add_argument("--n", type=int, required=True, help="number of images")
@@ -455,6 +472,16 @@ def build_parser() -> argparse.ArgumentParser:
     ct.add_argument("--force", action="store_true", help="re-render even if a matching collection exists")
     _catalog_option(ct)
     ct.set_defaults(func=_cmd_collection_toy)
+    cc = col_sub.add_parser("coco", help="one category of a COCO instances JSON as a collection (mask PNGs + a "
+                            "Parquet index; the photos stay where they are)")
+    cc.add_argument("annotations", type=Path, help="COCO instances JSON (images, annotations, categories)")
+    cc.add_argument("--images", type=Path, required=True, help="folder the images' file_name entries are relative to")
+    cc.add_argument("--category", required=True, help="category name (case-insensitive) or id, e.g. horse")
+    cc.add_argument("--out", type=Path, required=True, help="collection folder: masks/, index.parquet, "
+                    "coco_conversion.json")
+    cc.add_argument("--min-area", type=int, default=1024, help="skip instances with fewer mask pixels (default 1024)")
+    cc.add_argument("--largest-only", action="store_true", help="one sample per image: its largest instance")
+    cc.set_defaults(func=_cmd_collection_coco)
 
     tr = sub.add_parser("train", help="train a dual point map predictor on rendered training shards")
     tr.add_argument("--shards", required=True, type=Path, help="folder of training shards (part-NNNNN.parquet/.npz)")
