@@ -165,12 +165,28 @@ def _module_file(name: str) -> Path | None:
     return None
 
 
+def _parse(path: Path) -> ast.Module:
+    """``ast.parse`` of a source file, retried on CPython 3.11.7's spurious "AST constructor recursion depth
+    mismatch" SystemError: the depth counter is interpreter-wide, so a parse in another thread at the same moment
+    (Prefect parses flow sources for parameter schemas) can trip it (python/cpython gh-106905, fixed in later
+    releases). Each parse resets the counter, so a retry succeeds."""
+    source = path.read_text(encoding="utf-8")
+    for attempt in range(5):
+        try:
+            return ast.parse(source, filename=str(path))
+        except SystemError as e:
+            if "recursion depth mismatch" not in str(e) or attempt == 4:
+                raise
+            time.sleep(0.01 * (attempt + 1))
+    raise AssertionError("unreachable")
+
+
 def _imported_modules(name: str, path: Path) -> set[str]:
     """``bat3r_core`` module names imported anywhere in ``path`` (module level or inside functions)."""
     is_package = path.name == "__init__.py"
     package = name if is_package else name.rpartition(".")[0]
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+    for node in ast.walk(_parse(path)):
         if isinstance(node, ast.Import):
             found.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
