@@ -29,7 +29,7 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from bat3r_core.shards import atomic_write, atomic_write_text
+from bat3r_core.shards import atomic_write, atomic_write_bytes, atomic_write_text
 
 __all__ = ["CocoConversion", "rle_counts", "decode_rle", "polygons_to_mask", "segmentation_to_mask",
            "coco_to_collection", "CONVERSION_FILE", "INDEX_FILE"]
@@ -252,7 +252,7 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
             if not ok:
                 raise RuntimeError(f"could not encode the mask of annotation {ann_id}")
             mask_rel = f"masks/{sid}.png"
-            atomic_write(out / mask_rel, lambda tmp, b=png.tobytes(): Path(tmp).write_bytes(b))
+            atomic_write_bytes(out / mask_rel, png.tobytes())
             image_path = images / im["file_name"]
             try:  # relative to the index when it can be, so the folders can move together
                 image_ref = os.path.relpath(image_path.resolve(), out.resolve())
