@@ -45,6 +45,21 @@ def _atomic_write_text(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
+def _valid_stage(stage: str) -> bool:
+    return bool(stage) and all(c.isalnum() or c in "_-" for c in stage)
+
+
+def record_name(text: str) -> str:
+    """argparse ``type`` of every benchmark's ``--record-as``: the name :func:`record` accepts, checked before the
+    benchmark's minutes of work rather than after them."""
+    if not _valid_stage(text):
+        import argparse
+
+        raise argparse.ArgumentTypeError(f"expected a name of letters, digits, '_' or '-' (results/<name>.json), "
+                                         f"got {text!r}")
+    return text
+
+
 def record(stage: str, figures: dict, notes: str = "", results_dir: str | os.PathLike | None = None) -> Path:
     """Write ``results/<stage>.json`` (figures + machine + notes) and refresh ``RESULTS.md``; returns the json path.
 
@@ -55,7 +70,7 @@ def record(stage: str, figures: dict, notes: str = "", results_dir: str | os.Pat
         results_dir: write ``<stage>.json`` there instead and leave ``RESULTS.md`` alone (a CI run, a trial);
             None or ``RESULTS_DIR``: the project's record.
     """
-    if not stage or not all(c.isalnum() or c in "_-" for c in stage):
+    if not _valid_stage(stage):
         raise ValueError(f"stage must be a non-empty name of letters, digits, '_' or '-', got {stage!r}")
     out: dict = {}
     for k, v in figures.items():

@@ -36,7 +36,7 @@ if __name__ == "__main__":  # before Prefect is imported: it reads its settings 
 
     local_server_environment()
 
-from _results import record  # noqa: E402
+from _results import record, record_name  # noqa: E402
 
 from bat3r_core import evaluation, evaluation_truth, shards  # noqa: E402
 from bat3r_core.datasets import raw_image_shard  # noqa: E402
@@ -122,7 +122,7 @@ def _rounds(settings, data: Path, out: Path, iterations: int, run_seed: int) -> 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run-name", default="demo")
-    p.add_argument("--record-as", default="demo_control", help="name of the results/<name>.json to write")
+    p.add_argument("--record-as", type=record_name, default="demo_control", help="name of the results/<name>.json to write")
     p.add_argument("--no-oracle", action="store_true", help="skip the perfect-pseudo-label reference")
     args = p.parse_args(argv)
     settings, parameters = recorded_run("toy", args.run_name)  # the run's own settings and seed

@@ -55,7 +55,7 @@ if __name__ == "__main__":  # before Prefect is imported: it reads its settings 
 
     local_server_environment()
 
-from _results import RESULTS_DIR, record  # noqa: E402
+from _results import RESULTS_DIR, record, record_name  # noqa: E402
 from bench_demo_control import _oracle_dataset, _test_metrics  # noqa: E402
 
 from bat3r_core import evaluation, evaluation_truth, shards  # noqa: E402
@@ -488,7 +488,7 @@ def main(argv: list[str] | None = None) -> dict:
                    help="repeat the loop, the control and the oracle from the same Φ₀ with these seeds (0: the "
                         "benchmark's own arms) and report each arm's mean and spread (~25 min per extra seed and "
                         "iteration on 2 cores)")
-    p.add_argument("--record-as", default="fidelity", help="name of results/<name>.json and .png")
+    p.add_argument("--record-as", type=record_name, default="fidelity", help="name of results/<name>.json and .png")
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR,
                    help="folder of the json and plot (default: benchmarks/results, which also refreshes RESULTS.md)")
     add_catalog_argument(p)

@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _results import record  # noqa: E402
+from _results import record, record_name  # noqa: E402
 
 from bat3r_core import evaluation_truth, shards  # noqa: E402
 from bat3r_core.cameras import PinholeCamera  # noqa: E402
@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--category", default="toy", help="the run's category (default: toy; e.g. toy_wide)")
     p.add_argument("--run-name", default="demo")
     p.add_argument("--iteration", type=int, default=1, help="the iteration whose infer stage is analysed (>= 1)")
-    p.add_argument("--record-as", default="fit_oracle", help="name of the results/<name>.json to write")
+    p.add_argument("--record-as", type=record_name, default="fit_oracle", help="name of the results/<name>.json to write")
     p.add_argument("--versions", nargs="+", choices=list(VERSIONS), default=list(VERSIONS),
                    help="which versions of the points to fit (default: all four)")
     p.add_argument("--fitting", action="append", default=[], metavar="KEY=VALUE",

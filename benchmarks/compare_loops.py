@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _results import RESULTS_DIR, record  # noqa: E402
+from _results import RESULTS_DIR, record, record_name  # noqa: E402
 
 ARMS = ("loop", "control", "oracle")
 
@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     p.add_argument("--category", default="toy")
     p.add_argument("--storage-root", type=Path, default=None,
                    help="where runs live (default: the data catalog's storage root)")
-    p.add_argument("--record-as", required=True, help="name of the results/<name>.json to write")
+    p.add_argument("--record-as", type=record_name, required=True, help="name of the results/<name>.json to write")
     p.add_argument("--results-dir", type=Path, default=None,
                    help="write the json there and leave RESULTS.md alone (default: benchmarks/results)")
     args = p.parse_args(argv)

@@ -46,6 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _results import record_name  # noqa: E402
 from bat3r_core import shards  # noqa: E402
 
 PACK_FORMAT = 1
@@ -481,13 +482,13 @@ def main(argv: list[str] | None = None) -> None:
     rc.add_argument("--loop-run", required=True, help="the bootstrap run whose iteration 1 made the loop's data")
     rc.add_argument("--evaluations", nargs="+", required=True, help="evaluate --json files")
     rc.add_argument("--timings", nargs="+", required=True, help="timings.json files of the train calls")
-    rc.add_argument("--record-as", default="fidelity_gpu64")
+    rc.add_argument("--record-as", type=record_name, default="fidelity_gpu64")
     rc.add_argument("--results-dir", type=Path, default=None)
     rc.set_defaults(func=_record)
     cp = sub.add_parser("compare", help="results/<record-as>.json: predictors of evaluate --json files side by side")
     cp.add_argument("--run-name", required=True)
     cp.add_argument("--evaluations", nargs="+", required=True)
-    cp.add_argument("--record-as", required=True)
+    cp.add_argument("--record-as", type=record_name, required=True)
     cp.add_argument("--notes", default="")
     cp.add_argument("--results-dir", type=Path, default=None)
     cp.set_defaults(func=_compare)

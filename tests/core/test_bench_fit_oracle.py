@@ -219,3 +219,14 @@ def test_refit_ranking_figures_match_the_runs_own_and_nan_is_left_out_of_the_rec
     assert np.isnan(got["rank_rho_inlier_ratio"])                    # constant column
     kept = B._finite(got)
     assert "rank_rho_inlier_ratio" not in kept and kept["rank_rho_residual_chamfer_cm"] == pytest.approx(1.0)
+
+
+def test_a_bad_record_name_is_refused_before_the_work(capsys, tmp_path):
+    """``--record-as`` becomes results/<name>.json: a name ``record`` would refuse after minutes of refitting
+    (a dot, a slash) is refused when the arguments are parsed, naming the argument, before any run is read."""
+    with pytest.raises(SystemExit) as exc:
+        B.main(["--run-name", "no-such-run", "--record-as", "fit_oracle_depth_0.3", "--results-dir", str(tmp_path)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--record-as" in err and "'fit_oracle_depth_0.3'" in err
+    assert list(tmp_path.iterdir()) == []
