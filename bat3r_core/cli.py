@@ -325,7 +325,7 @@ def _cmd_collection_coco(args: argparse.Namespace) -> int:
 
     try:
         conv = coco_to_collection(args.annotations, args.images, args.category, args.out, min_area=args.min_area,
-                                  largest_only=args.largest_only)
+                                  largest_only=args.largest_only, exclude_truncated=args.exclude_truncated)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -481,6 +481,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "coco_conversion.json")
     cc.add_argument("--min-area", type=int, default=1024, help="skip instances with fewer mask pixels (default 1024)")
     cc.add_argument("--largest-only", action="store_true", help="one sample per image: its largest instance")
+    cc.add_argument("--exclude-truncated", action="store_true",
+                    help="skip instances whose mask touches the image border (cut off by the photo's edge)")
     cc.set_defaults(func=_cmd_collection_coco)
 
     tr = sub.add_parser("train", help="train a dual point map predictor on rendered training shards")

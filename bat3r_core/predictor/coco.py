@@ -14,8 +14,10 @@ turns one category of such a file into the Parquet-index layout every bat3r stag
 * One sample per instance (the crop centres on it; the rest of the photo is background to the mask), id
   ``<image stem>-<annotation id>``; ``largest_only`` keeps only each image's largest instance of the category.
 * Instances that cannot make a pseudo-label are not written and are counted by reason in ``coco_conversion.json``:
-  crowd annotations (``iscrowd`` 1: several animals in one mask), instances below ``min_area`` mask pixels, and
-  annotations whose segmentation is missing, malformed or of another size than its image.
+  crowd annotations (``iscrowd`` 1: several animals in one mask), instances below ``min_area`` mask pixels,
+  annotations whose segmentation is missing, malformed or of another size than its image, and with
+  ``exclude_truncated`` instances whose mask touches the image border (the animal continues outside the photo:
+  its crop shows part of a body the fit would place as a whole).
 """
 from __future__ import annotations
 
@@ -161,8 +163,8 @@ def _category_id(data: dict, category: str | int, path: Path) -> tuple[int, str]
 
 
 def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike, category: str | int,
-                       out: str | os.PathLike, min_area: int = 1024, largest_only: bool = False
-                       ) -> CocoConversion:
+                       out: str | os.PathLike, min_area: int = 1024, largest_only: bool = False,
+                       exclude_truncated: bool = False) -> CocoConversion:
     """Write one category of a COCO instances file as a bat3r Parquet-index collection in ``out``.
 
     Args:
@@ -174,6 +176,9 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
         min_area: instances with fewer mask pixels are skipped (default 32 x 32: smaller animals give crops
             with little more than a silhouette).
         largest_only: keep only the largest qualifying instance of each image.
+        exclude_truncated: skip instances whose mask has a pixel in the image's first or last row or column
+            (cut off by the photo's edge). Applied before ``largest_only``, so a photo whose largest animal is cut
+            off keeps its largest whole one.
 
     Images are not opened or copied: a missing or unreadable photo becomes a ``bad_image`` row when the
     collection is read, like any other. Raises ValueError naming the file and key for a file that is not COCO
@@ -232,6 +237,9 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
         if area < max(min_area, 1):
             skip(f"smaller than min_area ({min_area} pixels)" if area else "empty mask", ann_id)
             continue
+        if exclude_truncated and (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
+            skip("cut off by the image border (exclude_truncated)", ann_id)
+            continue
         kept.setdefault(im["id"], []).append((area, ann_id, mask))
 
     rows, written = [], set()
@@ -268,6 +276,7 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
                       for k in ("sample_id", "image_path", "mask_path")})
     report = {"annotations": str(annotations.resolve()), "images": str(images.resolve()),
               "category": cat_name, "category_id": cat_id, "min_area": min_area, "largest_only": largest_only,
+              "exclude_truncated": exclude_truncated,
               "samples": len(rows), "images_with_samples": len(kept),
               "skipped": dict(sorted(skipped.items())), "skipped_examples": examples}
     atomic_write_text(out / CONVERSION_FILE, json.dumps(report, indent=1, default=str))

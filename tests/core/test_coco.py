@@ -188,3 +188,35 @@ def test_coco_errors_name_the_file_and_what_was_expected(coco_set, tmp_path, cap
     assert cli_main(["collection", "coco", str(ann), "--images", str(coco_set["images"]), "--category", "cat",
                      "--out", str(out)]) == 2
     assert "no category named or numbered 'cat'" in capsys.readouterr().err
+
+
+def test_exclude_truncated_skips_instances_cut_off_by_the_photo_edge(tmp_path, capsys):
+    """A photo with three horses: the largest runs off the left edge, one touches the bottom row, one is whole.
+    --exclude-truncated keeps the whole one (also as the photo's largest with --largest-only); without it all three
+    are samples. A mask one pixel short of the edge is whole."""
+    images = tmp_path / "photos"
+    images.mkdir()
+    _photo(images / "p.jpg", 60, 80, 1)
+    off_left = [[0, 5, 40, 5, 40, 45, 0, 45]]         # columns 0..39: touches the first column
+    on_bottom = [[50, 30, 78, 30, 78, 60, 50, 60]]    # rows 30..59: touches the last row
+    whole = [[45, 2, 79, 2, 79, 25, 45, 25]]          # columns 45..78, rows 2..24: one pixel short of the edges
+    data = {"images": [{"id": 1, "file_name": "p.jpg", "height": 60, "width": 80}],
+            "categories": [{"id": 1, "name": "horse"}],
+            "annotations": [{"id": i, "image_id": 1, "category_id": 1, "iscrowd": 0, "segmentation": seg}
+                            for i, seg in ((1, off_left), (2, on_bottom), (3, whole))]}
+    ann = tmp_path / "instances.json"
+    ann.write_text(json.dumps(data))
+    assert polygons_to_mask(whole, 60, 80)[:, -1].sum() == 0 and polygons_to_mask(off_left, 60, 80)[:, 0].any()
+
+    conv = coco_to_collection(ann, images, "horse", tmp_path / "all", min_area=100)
+    assert conv.samples == 3 and conv.skipped == {}
+    conv = coco_to_collection(ann, images, "horse", tmp_path / "whole", min_area=100, exclude_truncated=True,
+                              largest_only=True)
+    assert conv.samples == 1 and conv.skipped == {"cut off by the image border (exclude_truncated)": 2}
+    assert [s.sample_id for s in list_collection(tmp_path / "whole" / "index.parquet")] == ["p-3"]
+    assert json.loads((tmp_path / "whole" / CONVERSION_FILE).read_text())["exclude_truncated"] is True
+
+    assert cli_main(["collection", "coco", str(ann), "--images", str(images), "--category", "horse",
+                     "--out", str(tmp_path / "cli"), "--min-area", "100", "--exclude-truncated"]) == 0
+    assert "skipped 2: cut off by the image border (exclude_truncated)" in capsys.readouterr().out
+    assert [s.sample_id for s in list_collection(tmp_path / "cli" / "index.parquet")] == ["p-3"]
