@@ -28,7 +28,7 @@ from .shards import atomic_write
 
 __all__ = ["PreparedAsset", "prepare_asset", "BodyFrameProposal", "propose_body_frame", "ASSET_FORMAT_VERSION"]
 
-ASSET_FORMAT_VERSION = 3
+ASSET_FORMAT_VERSION = 4
 """Bumped when the normalisation changes, so that normalised GLBs written by older code are rebuilt. 2: quantized
 positions dequantized, Draco decoded, textures named by extensions and through KHR_texture_transform, skin weights
 normalised."""
@@ -92,8 +92,8 @@ def prepare_asset(source: str | os.PathLike, out_dir: str | os.PathLike, scale: 
                                      "up_axis": info.up_axis, "version": ASSET_FORMAT_VERSION}).encode())
     out = Path(out_dir) / f"{name or source.stem}-{key.hexdigest()[:12]}.glb"
     if not out.is_file():
-        save_rig_glb(rig, out, texture=info.texture)
-        report = {k: v for k, v in info.__dict__.items() if k != "texture"}
+        save_rig_glb(rig, out, texture=info.texture, vertex_colors=info.vertex_colors)
+        report = {k: v for k, v in info.__dict__.items() if k not in ("texture", "vertex_colors")}
         atomic_write(out.with_suffix(".json"), lambda tmp: Path(tmp).write_text(json.dumps(report, indent=1)))
     return PreparedAsset(path=out, rig=load_rig(out), info=info, source=source)
 

@@ -316,6 +316,8 @@ class AssetInfo:
             0 for a file saved at its bind pose). The rest pose never uses it.
         bind_scale: (min, max) scale of the joints' bind frames relative to the skeleton's parent node (the
             singular values of the inverse inverse-bind matrices; (1, 1) for rigid bind frames).
+        vertex_colors: (V, 3) float32 linear RGB of the file's ``COLOR_0`` (white for primitives without one), which
+            glTF multiplies into the base colour; None when no primitive has vertex colours.
         dequantization: for a ``KHR_mesh_quantization`` file whose inverse bind matrices carry the dequantization
             of its integer positions, the ``(scale, x, y, z)`` offset applied to place the bind pose as the file's
             scene shows it (in file units, before ``scale``); None otherwise.
@@ -337,6 +339,21 @@ class AssetInfo:
     bind_scale: tuple[float, float] = (1.0, 1.0)
     node_pose_deg: float = 0.0
     dequantization: tuple[float, float, float, float] | None = None
+    vertex_colors: np.ndarray | None = None
+
+
+def _vertex_colours(data: np.ndarray | None, count: int, path: Path, label: str) -> np.ndarray | None:
+    """A primitive's ``COLOR_0`` as (count, 3) float32 linear RGB in [0, 1] (RGBA: alpha dropped; normalised
+    integers already read as fractions), or None without one."""
+    if data is None:
+        return None
+    c = np.asarray(data, dtype=np.float64)
+    if c.ndim != 2 or c.shape[0] != count or c.shape[1] not in (3, 4):
+        raise RigError(f"{path}: {label}: COLOR_0 must be VEC3 or VEC4 with one entry per vertex ({count}), got "
+                       f"shape {c.shape}")
+    if not np.isfinite(c).all():
+        raise RigError(f"{path}: {label}: COLOR_0 has non-finite values")
+    return np.clip(c[:, :3], 0.0, 1.0).astype(np.float32)
 
 
 class _Gltf:
@@ -644,6 +661,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     nj = len(joint_nodes)
 
     verts, faces, uv_sets, weights, report, notes = [], [], [], [], [], []
+    colours: list[np.ndarray | None] = []  # per primitive: its COLOR_0 (n, 3) linear RGB, or None
     weight_sums: list[float] = []  # the sums of the vertices whose weights did not sum to 1 (normalised)
     n_unweighted = 0
     material_faces: dict[int | None, int] = {}  # faces per material (None: primitives without one)
@@ -724,6 +742,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
             uv_sets.append({k: g.attribute(prim, f"TEXCOORD_{k}").astype(np.float64)
                             for k in (0, 1) if getattr(prim.attributes, f"TEXCOORD_{k}", None) is not None})
             parts.append((prim.material, uv_sets[-1], len(pos)))
+            colours.append(_vertex_colours(g.attribute(prim, "COLOR_0"), len(pos), path, label))
             offset += len(pos)
         report.append((label_node, f"{how}: {offset - n_before} vertices"))
     if not verts:
@@ -747,6 +766,14 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
     if uv is not None:
         uv = uv.copy()
         uv[:, 1] = 1.0 - uv[:, 1]  # glTF's UV origin is top-left; bat3r stores OpenGL-style (origin bottom-left)
+    vertex_colors = None
+    if any(c is not None for c in colours):  # glTF: COLOR_0 multiplies the base colour; none means white
+        vertex_colors = np.concatenate([c if c is not None else np.ones((p[2], 3), np.float32)
+                                        for c, p in zip(colours, parts)])
+        with_colour = sum(c is not None for c in colours)
+        notes.append(f"COLOR_0 vertex colours on {with_colour} of {len(colours)} primitives: multiplied into the "
+                     f"base colour, as glTF shades them (linear RGB {np.round(vertex_colors.min(0), 3).tolist()} to "
+                     f"{np.round(vertex_colors.max(0), 3).tolist()}); a category's own `textures` replace both")
     rest = np.stack([_rigid_part(b) for b in bind])
     try:
         rig = Rig.from_unordered(path.stem, np.concatenate(verts), np.concatenate(faces), names,
@@ -770,7 +797,7 @@ def read_asset(path: str | os.PathLike, scale: float = 1.0, up_axis: str = "+Y")
                      animations=tuple(a.name or f"animation {k}" for k, a in enumerate(gltf.animations or [])),
                      scale=float(scale), up_axis=str(up_axis).upper(), texture=texture, texture_source=source,
                      notes=tuple(notes), bind_scale=(float(bind_sv.min()), float(bind_sv.max())),
-                     node_pose_deg=pose_angle, dequantization=dequantization)
+                     node_pose_deg=pose_angle, dequantization=dequantization, vertex_colors=vertex_colors)
     return rig, info
 
 
@@ -875,7 +902,8 @@ def _png_bytes(image: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def save_rig_glb(rig: Rig, path: str | os.PathLike, texture: np.ndarray | None = None) -> Path:
+def save_rig_glb(rig: Rig, path: str | os.PathLike, texture: np.ndarray | None = None,
+                 vertex_colors: np.ndarray | None = None) -> Path:
     """Write ``rig`` as a binary glTF with a skin.
 
     Joint nodes carry the rest pose as local TRS (rotation + translation; a rest frame with scale or shear is
@@ -884,6 +912,8 @@ def save_rig_glb(rig: Rig, path: str | os.PathLike, texture: np.ndarray | None =
 
     Args:
         texture: optional (H, W, 3) uint8 RGB base-colour image, embedded as PNG.
+        vertex_colors: optional (V, 3) linear RGB in [0, 1], written as ``COLOR_0`` (float), which glTF
+            multiplies into the base colour.
     """
     path = Path(path)
     gltf = pygltflib.GLTF2(asset=pygltflib.Asset(generator="bat3r", version="2.0"))
@@ -906,6 +936,12 @@ def save_rig_glb(rig: Rig, path: str | os.PathLike, texture: np.ndarray | None =
         uv = rig.uvs.copy()
         uv[:, 1] = 1.0 - uv[:, 1]
         attrs.TEXCOORD_0 = blob.add(uv.astype(np.float32), "VEC2", pygltflib.FLOAT, pygltflib.ARRAY_BUFFER)
+    if vertex_colors is not None:
+        vc = np.asarray(vertex_colors, dtype=np.float64)
+        if vc.shape != (rig.num_vertices, 3) or not np.isfinite(vc).all():
+            raise ValueError(f"vertex_colors must be a finite ({rig.num_vertices}, 3) array, got {vc.shape}")
+        attrs.COLOR_0 = blob.add(np.clip(vc, 0.0, 1.0).astype(np.float32), "VEC3", pygltflib.FLOAT,
+                                 pygltflib.ARRAY_BUFFER)
     nj = rig.num_joints
     w = rig.skin_weights
     order = np.argsort(-w, axis=1, kind="stable")[:, :4 * _MAX_INFLUENCE_SETS]

@@ -47,6 +47,7 @@ from bat3r_core.render.config import RenderConfig, SceneAssets
 from bat3r_core.render.jobs import job_from_dict
 
 MESH_PASS_INDEX = 1
+_COLOUR_ATTRIBUTE = "bat3r_vertex_colour"
 _W4 = np.eye(4)
 _W4[:3, :3] = GLTF_TO_BLENDER_WORLD
 
@@ -68,13 +69,15 @@ class BlenderRenderer:
     """A Blender scene with one rigged asset, set up once and re-posed, re-textured and re-lit per job."""
 
     def __init__(self, assets: SceneAssets, config: RenderConfig, workdir: Path, debug_vertices: bool = False):
-        from bat3r_core.rig_io import load_rig
+        from bat3r_core.rig_io import read_any_asset
 
         self.assets = assets
         self.config = config
         self.workdir = Path(workdir)
         self.debug_vertices = debug_vertices
-        self.rig = load_rig(assets.asset, check_size=False)
+        self.rig, info = read_any_asset(assets.asset)
+        # the asset's COLOR_0 multiplies its own base colour (glTF); a category's own textures replace both
+        self.vertex_colors = info.vertex_colors if not assets.textures else None
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene
         self._build_mesh()
@@ -96,6 +99,10 @@ class BlenderRenderer:
             loop_vertices = np.empty(len(me.loops), dtype=np.int64)
             me.loops.foreach_get("vertex_index", loop_vertices)
             layer.data.foreach_set("uv", rig.uvs[loop_vertices].astype(np.float32).ravel())
+        if self.vertex_colors is not None:
+            colour = me.color_attributes.new(name=_COLOUR_ATTRIBUTE, type="FLOAT_COLOR", domain="POINT")
+            rgba = np.c_[self.vertex_colors, np.ones(len(self.vertex_colors))].astype(np.float32)
+            colour.data.foreach_set("color", rgba.ravel())  # linear, as COLOR_0 is
         me.polygons.foreach_set("use_smooth", np.ones(len(me.polygons), dtype=bool))
         me.update()
         self.mesh = bpy.data.objects.new("bat3r_mesh", me)
@@ -176,7 +183,17 @@ class BlenderRenderer:
         if not self.mesh.data.uv_layers:  # no UVs: project the texture with the generated coordinates
             coords = nt.nodes.new("ShaderNodeTexCoord")
             nt.links.new(coords.outputs["Generated"], self.tex_node.inputs["Vector"])
-        nt.links.new(self.tex_node.outputs["Color"], bsdf.inputs["Base Color"])
+        base = self.tex_node.outputs["Color"]
+        if self.vertex_colors is not None:
+            attribute = nt.nodes.new("ShaderNodeVertexColor")
+            attribute.layer_name = _COLOUR_ATTRIBUTE
+            mix = nt.nodes.new("ShaderNodeMix")
+            mix.data_type, mix.blend_type = "RGBA", "MULTIPLY"
+            mix.inputs["Factor"].default_value = 1.0
+            nt.links.new(base, mix.inputs["A"])
+            nt.links.new(attribute.outputs["Color"], mix.inputs["B"])
+            base = mix.outputs["Result"]
+        nt.links.new(base, bsdf.inputs["Base Color"])
         self.mesh.data.materials.clear()
         self.mesh.data.materials.append(mat)
         for poly in self.mesh.data.polygons:

@@ -178,8 +178,28 @@ def split_materials_glb(src: Path, dst: Path) -> tuple[Path, np.ndarray]:
     return _save(gltf, data, dst), checker
 
 
+def vertex_colours_glb(src: Path, dst: Path) -> tuple[Path, np.ndarray]:
+    """``src`` with ``COLOR_0`` as low-poly packs export it (normalised unsigned-byte RGBA): the front half (+Z)
+    red, the back half blue, alpha 128 (which shading ignores). Returns the path and the colours as stored (V, 4)
+    uint8."""
+    from bat3r_core.rig_io import _read_accessor
+
+    gltf = pygltflib.GLTF2().load(str(src))
+    blob = gltf.binary_blob()
+    data = bytearray(blob)
+    prim = next(m for m in gltf.meshes if m.primitives).primitives[0]
+    pos = _read_accessor(gltf, blob, prim.attributes.POSITION, src)
+    front = pos[:, 2] > np.median(pos[:, 2])
+    rgba = np.where(front[:, None], [230, 20, 10, 128], [15, 40, 220, 128]).astype(np.uint8)
+    gltf.accessors.append(pygltflib.Accessor(bufferView=_append(gltf, data, rgba), count=len(rgba),
+                                             componentType=pygltflib.UNSIGNED_BYTE, normalized=True, type="VEC4"))
+    prim.attributes.COLOR_0 = len(gltf.accessors) - 1
+    return _save(gltf, data, dst), rgba
+
+
 def make_variants(source_glb: Path, out_dir: Path) -> dict[str, Path]:
-    """All variants of ``source_glb`` in ``out_dir``: the Blender ones, ``unindexed``, ``quantized``, ``materials``."""
+    """All variants of ``source_glb`` in ``out_dir``: the Blender ones, ``unindexed``, ``quantized``, ``materials``,
+    ``vertex_colours``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     proc = subprocess.run([sys.executable, str(SCRIPT), str(source_glb), str(out_dir), *BLENDER_VARIANTS],
                           capture_output=True, text=True, timeout=600)
@@ -189,4 +209,5 @@ def make_variants(source_glb: Path, out_dir: Path) -> dict[str, Path]:
     paths["unindexed"] = deindex_glb(paths["flat"], out_dir / "unindexed.glb")
     paths["quantized"] = quantize_glb(source_glb, out_dir / "quantized.glb")
     paths["materials"] = split_materials_glb(source_glb, out_dir / "materials.glb")[0]
+    paths["vertex_colours"] = vertex_colours_glb(source_glb, out_dir / "vertex_colours.glb")[0]
     return paths

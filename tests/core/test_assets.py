@@ -258,3 +258,48 @@ def test_asset_check_command_exit_codes(tmp_path):
     assert "1728 in the file, 290 welded by position" in good.stdout
     assert "animations: 3 ['Survey', 'Walk', 'Run']" in good.stdout and "all checks passed" in good.stdout
     assert math.isfinite(float(good.stdout.split("longest ")[1].split(" m")[0]))
+
+
+@pytest.mark.blender
+def test_vertex_colours_are_read_kept_and_rendered(toy_rig, tmp_path):
+    """COLOR_0 as low-poly packs export it (normalised bytes, RGBA) is read as linear RGB, kept by the prepared
+    asset, and multiplied into the base colour the render worker shades: the toy's front half renders red and its
+    back half blue, pixel by pixel as the render's own canonical labels place them. A category's own textures
+    replace the asset's look, vertex colours included."""
+    from bat3r_core.render.config import RenderConfig, SceneAssets
+    from bat3r_core.render.jobs import RenderJob
+    from bat3r_core.render.runner import render_shard
+    from bat3r_core.shards import read_shard
+    from bat3r_core.viewpoints import frame_camera, identity_frame
+    from tests.assets.variants import vertex_colours_glb
+
+    src = save_rig_glb(toy_rig, tmp_path / "toy.glb")  # no texture: the base colour is white
+    path, rgba = vertex_colours_glb(src, tmp_path / "coloured.glb")
+    rig, info = read_asset(path)
+    np.testing.assert_allclose(info.vertex_colors, rgba[:, :3] / 255.0, atol=1e-6)
+    assert any("COLOR_0 vertex colours on 1 of 1 primitives" in n for n in info.notes)
+    assert read_asset(src)[1].vertex_colors is None
+    prepared = prepare_asset(path, tmp_path / "prepared")
+    np.testing.assert_allclose(read_asset(prepared.path)[1].vertex_colors, info.vertex_colors, atol=1e-7)
+
+    theta = np.zeros((rig.num_joints, 3))
+    verts = rig.rest_vertices
+    view = frame_camera(verts, identity_frame(verts.mean(0)), -70.0, 10.0, 4.0, 40.0, 64, 64, 0.1)
+    job = RenderJob(sample_id="side", excess_rotations=theta, camera=view.camera, global_scale=1.0,
+                    global_rotation=np.eye(3), global_translation=np.zeros(3), seed=1)
+    config = RenderConfig(resolution=64, samples=4)
+    front_z = np.median(verts[:, 2])
+    for name, assets in (("own", SceneAssets(str(prepared.path), textures=())),
+                         ("category", SceneAssets(str(prepared.path), textures=("toy:grey",)))):
+        render_shard([job], assets, tmp_path / name, 0, config, rig=rig)
+        table, arrays = read_shard(tmp_path / name, 0)
+        assert table.column("status").to_pylist() == ["ok"]
+        rgb, occ = arrays["rgb"][0].astype(float), arrays["occupancy"][0][..., 0]
+        front = occ & (arrays["Q"][0][..., 0, 2] > front_z + 0.1)
+        back = occ & (arrays["Q"][0][..., 0, 2] < front_z - 0.1)
+        assert front.sum() > 100 and back.sum() > 100
+        f, b = rgb[front].mean(0), rgb[back].mean(0)
+        if name == "own":
+            assert f[0] > f[2] + 40 and b[2] > b[0] + 40, (f, b)  # red front, blue back
+        else:
+            assert abs(f[0] - f[2]) < 30 and abs(b[0] - b[2]) < 30, (f, b)  # a grey coat, no tint
