@@ -31,6 +31,10 @@ class FittingConfig:
         weight_silhouette: weight of the silhouette term (not in the paper; 0 = off, the paper's objective): the
             fitted mesh's projection against the image's mask (:mod:`.silhouette`), on the data term's scale.
             Whatever the weight, fits report its final value (``loss_silhouette``).
+        data_depth_weight: weight of the camera-depth (z) component of the data term's residual (1 = the paper's
+            isotropic term). Single-image depth is what Φ predicts worst (on the toy bench Φ₀'s posed maps are off
+            ~4–5 cm RMS across the image and ~20 cm in depth), so below 1 the fit trusts the maps' x, y — where
+            each pixel's point lies across the image — more than their depth. The initial similarity is isotropic.
         silhouette_vertices: fitting-mesh vertices (farthest point sample) whose projections the term checks.
         silhouette_mask_samples: mask pixels (at most; a seeded sample) that must be covered by a projection.
         silhouette_refresh_steps: each mask pixel's nearest projected vertex (the coverage's assignment, most of
@@ -96,6 +100,7 @@ class FittingConfig:
     weight_repulsion: float = 1.0
     weight_scale: float = 0.0
     weight_silhouette: float = 0.0
+    data_depth_weight: float = 1.0
     silhouette_vertices: int = 600
     silhouette_mask_samples: int = 400
     silhouette_refresh_steps: int = 5
@@ -143,7 +148,7 @@ class FittingConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FittingConfig.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("weight_angle", "weight_edge", "weight_volume", "weight_repulsion", "weight_scale",
-                     "weight_silhouette", "min_confidence", "repulsion_reference_length", "objective_reference_length",
+                     "weight_silhouette", "data_depth_weight", "min_confidence", "repulsion_reference_length", "objective_reference_length",
                      "weld_relative_tolerance",
                      "densify_max_edge_fraction"):
             if not getattr(self, name) >= 0:

@@ -60,6 +60,7 @@ LOSS_NAMES = ("data", "angle", "edge", "volume", "repulsion", "scale", "silhouet
 STATUS_TOO_FEW = "too_few_points"
 STATUS_BAD_INPUT = "bad_input"
 _INIT_IRLS_ITERATIONS = 3
+_INIT_ANISOTROPIC_ITERATIONS = 50
 _MAX_DENSIFY_LEVELS = 6
 
 
@@ -313,14 +314,26 @@ def _prepare(asset: FittingAsset, inst: PointCloudInstance, config: FittingConfi
             "ok", "", info)
 
 
-def _robust_similarity(source: np.ndarray, target: np.ndarray, delta: float) -> tuple[float, np.ndarray, np.ndarray]:
-    """Kabsch–Umeyama similarity source → target, re-weighted a few times with Huber weights."""
-    w = np.ones(len(source))
+def _robust_similarity(source: np.ndarray, target: np.ndarray, delta: float, depth_weight: float = 1.0
+                       ) -> tuple[float, np.ndarray, np.ndarray]:
+    """Kabsch–Umeyama similarity source → target, re-weighted a few times with Huber weights.
+
+    With ``depth_weight`` w < 1 the residual's z component counts w times (the data term's weighting): each round
+    solves the isotropic problem for targets whose z is moved from the current fit's z by w² of the residual —
+    the majorisation of the anisotropic least squares, so every round lowers it (w = 1: the plain targets)."""
+    w2 = float(depth_weight) ** 2
+    axis = np.array([1.0, 1.0, float(depth_weight)])
     sim = umeyama(source, target, with_scale=True)
-    for _ in range(_INIT_IRLS_ITERATIONS):
-        r = np.linalg.norm(sim.apply(source) - target, axis=1)
-        w = np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
-        sim = umeyama(source, target, with_scale=True, weights=w)
+    rounds = _INIT_IRLS_ITERATIONS if w2 == 1.0 else _INIT_ANISOTROPIC_ITERATIONS
+    for _ in range(rounds):
+        model = sim.apply(source)
+        r = np.linalg.norm((model - target) * axis, axis=1)
+        weights = np.where(r <= delta, 1.0, delta / np.maximum(r, 1e-12))
+        goal = target
+        if w2 != 1.0:
+            goal = target.copy()
+            goal[:, 2] = model[:, 2] + w2 * (target[:, 2] - model[:, 2])
+        sim = umeyama(source, goal, with_scale=True, weights=weights)
     return sim.scale, sim.rotation, sim.translation
 
 
@@ -451,7 +464,8 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     for i, p in enumerate(prepared):
         n = len(p.vertex)
         vertex[i, :n], target[i, :n], mask[i, :n] = p.vertex, p.target, 1.0
-        s0[i], r0[i], t0[i] = _robust_similarity(rest[p.vertex], p.target, config.huber_delta)
+        s0[i], r0[i], t0[i] = _robust_similarity(rest[p.vertex], p.target, config.huber_delta,
+                                                  config.data_depth_weight)
     to = dict(dtype=dt, device=dev)
     vertex_t = torch.as_tensor(vertex, device=dev)
     target_t, mask_t = torch.as_tensor(target, **to), torch.as_tensor(mask, **to)
@@ -484,6 +498,8 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                                  device=dev)[None].expand(b, -1)
 
     sil_nearest = None
+    # the data residual's camera-depth component weighted by config.data_depth_weight (1: isotropic, the paper's)
+    axis_w = torch.as_tensor([1.0, 1.0, config.data_depth_weight], **to) / unit
 
     def evaluate(step: int, final: bool = False):
         nonlocal pair_batch, pairs, sil_nearest
@@ -509,7 +525,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                                          dtype=torch.long, device=dev)
             pairs = torch.as_tensor(np.concatenate(found), dtype=torch.long, device=dev).reshape(-1, 2)
         terms = {
-            "data": data_term(posed_ctrl / unit, target_t / unit, mask_t, config.huber_delta),
+            "data": data_term(posed_ctrl * axis_w, target_t * axis_w, mask_t, config.huber_delta),
             "angle": angle_term(th, joint_mask),
             "edge": reg.edge(verts_u) / unit ** 4,
             "volume": reg.volume(verts_u) / unit ** 6,
