@@ -498,8 +498,9 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                                  device=dev)[None].expand(b, -1)
 
     sil_nearest = None
-    # the data residual's camera-depth component weighted by config.data_depth_weight (1: isotropic, the paper's)
-    axis_w = torch.as_tensor([1.0, 1.0, config.data_depth_weight], **to) / unit
+    # the data residual's camera-depth component weighted by config.data_depth_weight (1: isotropic, the paper's;
+    # multiplied before the division by the unit, so w = 1 gives the very bits of the unweighted term)
+    axis_w = torch.as_tensor([1.0, 1.0, config.data_depth_weight], **to)
 
     def evaluate(step: int, final: bool = False):
         nonlocal pair_batch, pairs, sil_nearest
@@ -525,7 +526,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                                          dtype=torch.long, device=dev)
             pairs = torch.as_tensor(np.concatenate(found), dtype=torch.long, device=dev).reshape(-1, 2)
         terms = {
-            "data": data_term(posed_ctrl * axis_w, target_t * axis_w, mask_t, config.huber_delta),
+            "data": data_term(posed_ctrl * axis_w / unit, target_t * axis_w / unit, mask_t, config.huber_delta),
             "angle": angle_term(th, joint_mask),
             "edge": reg.edge(verts_u) / unit ** 4,
             "volume": reg.volume(verts_u) / unit ** 6,
