@@ -8,12 +8,13 @@ split ``test``) and its pseudo-label check per iteration (``iter-NN/evaluate/pse
 next to the benchmark's recorded arms (``benchmarks/results/<fidelity>.json``).
 
     python benchmarks/compare_loops.py --fidelity fidelity_fix --runs bench-fix-sil:silhouette_16 \\
-        [--runs OTHER[:LABEL] ...] --record-as fidelity_loop_silhouette
+        [--runs OTHER[:LABEL] ...] [--iteration I] --record-as fidelity_loop_silhouette
 
 Figures: ``mcd_<label>_iter<i>``, ``rot_err_deg_<label>_iter<i>``, ``median_fit_vertex_err_cm_<label>_iter<i>``,
 ``filter_precision_<label>_iter<i>``, ``filter_base_rate_<label>_iter<i>`` for every variant, the benchmark's
-``mcd_{loop,control,oracle}_iter<i>`` and ``rot_err_deg_…`` copied, and ``gap_to_control_cm_<label>`` (the
-variant's last-iteration test mCD minus the control's: negative = the variant beats the control).
+``mcd_{loop,control,oracle}_iter<i>`` and ``rot_err_deg_…`` copied, ``gap_to_control_cm_<label>`` (the
+variant's test mCD at the benchmark's last iteration, or at ``--iteration``, minus the control's: negative = the
+variant beats the control) and ``gap_recovered_<label>`` (the share of the control → oracle gap it closes there).
 """
 from __future__ import annotations
 
@@ -81,6 +82,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     p.add_argument("--runs", type=_run_spec, action="append", required=True, metavar="RUN[:LABEL]",
                    help="a bootstrap run of the same category started from the benchmark's Φ₀ (repeatable)")
     p.add_argument("--category", default="toy")
+    p.add_argument("--iteration", type=int, default=None,
+                   help="compare at this iteration (default: the benchmark's last; e.g. 1 for one-iteration variants)")
     p.add_argument("--storage-root", type=Path, default=None,
                    help="where runs live (default: the data catalog's storage root)")
     p.add_argument("--record-as", type=record_name, required=True, help="name of the results/<name>.json to write")
@@ -99,6 +102,11 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     last = max((int(k.rsplit("iter", 1)[1]) for k in figures if k.startswith("mcd_control_iter")), default=None)
     if last is None:
         raise SystemExit(f"--fidelity: {bench_file} has no control arm (mcd_control_iter<i>)")
+    if args.iteration is not None:
+        if f"mcd_control_iter{args.iteration}" not in figures:
+            raise SystemExit(f"--iteration: {bench_file} has no control figure at iteration {args.iteration} "
+                             f"(it has 0..{last})")
+        last = args.iteration
     if args.storage_root is None:
         from bat3r_core.catalog import load_catalog
 
@@ -111,6 +119,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         if final is not None:
             gap = round(final - figures[f"mcd_control_iter{last}"], 3)
             figures[f"gap_to_control_cm_{label}"] = gap
+            oracle = figures.get(f"mcd_oracle_iter{last}")
+            if oracle is not None and figures[f"mcd_control_iter{last}"] > oracle:  # share of the gap recovered
+                figures[f"gap_recovered_{label}"] = round(-gap / (figures[f"mcd_control_iter{last}"] - oracle), 3)
             lines.append(f"{label} ({name}): iteration {last} test mCD {final:.2f} cm against the control's "
                          f"{figures[f'mcd_control_iter{last}']:.2f} and the loop's "
                          f"{figures.get(f'mcd_loop_iter{last}', float('nan')):.2f}: "

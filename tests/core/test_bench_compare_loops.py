@@ -45,6 +45,16 @@ def test_variant_figures_sit_next_to_the_benchmark_arms(tmp_path):
     saved = json.loads((results / "variants.json").read_text())
     assert "sil (good): iteration 2 test mCD 10.20 cm against the control's 10.40" in saved["notes"]
     assert "beats the control" in saved["notes"] and "behind the control" in saved["notes"]
+    assert figures["gap_recovered_sil"] == pytest.approx(2.0)  # 0.2 cm past the control of a 0.1 cm gap
+
+    # a one-iteration variant against the benchmark's iteration 1 (no oracle there: no share of the gap)
+    _fake_run(tmp_path / "runs", "short", [10.9, 10.45])
+    figures = C.main(["--fidelity", "fid", "--runs", "short", "--storage-root", str(tmp_path / "runs"),
+                      "--iteration", "1", "--record-as", "variants", "--results-dir", str(results)])
+    assert figures["gap_to_control_cm_short"] == pytest.approx(-0.05) and "gap_recovered_short" not in figures
+    with pytest.raises(SystemExit, match="no control figure at iteration 3"):
+        C.main(["--fidelity", "fid", "--runs", "short", "--storage-root", str(tmp_path / "runs"),
+                "--iteration", "3", "--record-as", "variants", "--results-dir", str(results)])
 
 
 def test_a_missing_run_or_benchmark_is_named(tmp_path):
