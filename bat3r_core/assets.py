@@ -31,7 +31,8 @@ __all__ = ["PreparedAsset", "prepare_asset", "BodyFrameProposal", "propose_body_
 ASSET_FORMAT_VERSION = 4
 """Bumped when the normalisation changes, so that normalised GLBs written by older code are rebuilt. 2: quantized
 positions dequantized, Draco decoded, textures named by extensions and through KHR_texture_transform, skin weights
-normalised."""
+normalised. 3: several materials packed into one base-colour atlas, the base-colour factor tinting textures. 4: COLOR_0
+vertex colours kept."""
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,8 @@ class FittingConfig:
         data_depth_weight: weight of the camera-depth (z) component of the data term's residual (1 = the paper's
             isotropic term). Single-image depth is what Φ predicts worst (on the toy bench Φ₀'s posed maps are off
             ~4–5 cm RMS across the image and ~20 cm in depth), so below 1 the fit trusts the maps' x, y — where
-            each pixel's point lies across the image — more than their depth. The initial similarity is isotropic.
+            each pixel's point lies across the image — more than their depth. The initial similarity is solved
+            under the same weighting.
         silhouette_vertices: fitting-mesh vertices (farthest point sample) whose projections the term checks.
         silhouette_mask_samples: mask pixels (at most; a seeded sample) that must be covered by a projection.
         silhouette_refresh_steps: each mask pixel's nearest projected vertex (the coverage's assignment, most of
@@ -148,9 +149,8 @@ class FittingConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FittingConfig.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("weight_angle", "weight_edge", "weight_volume", "weight_repulsion", "weight_scale",
-                     "weight_silhouette", "data_depth_weight", "min_confidence", "repulsion_reference_length", "objective_reference_length",
-                     "weld_relative_tolerance",
-                     "densify_max_edge_fraction"):
+                     "weight_silhouette", "data_depth_weight", "min_confidence", "repulsion_reference_length",
+                     "objective_reference_length", "weld_relative_tolerance", "densify_max_edge_fraction"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"FittingConfig.{name} must be >= 0, got {getattr(self, name)!r}")
         if not self.warmup_factor >= 1:

@@ -76,8 +76,11 @@ class BlenderRenderer:
         self.workdir = Path(workdir)
         self.debug_vertices = debug_vertices
         self.rig, info = read_any_asset(assets.asset)
-        # the asset's COLOR_0 multiplies its own base colour (glTF); a category's own textures replace both
-        self.vertex_colors = info.vertex_colors if not assets.textures else None
+        # the asset's own look, read once: its base colour, which its COLOR_0 multiplies (glTF); a category's own
+        # textures replace both
+        own_look = not assets.textures
+        self.own_texture = info.texture if own_look else None
+        self.vertex_colors = info.vertex_colors if own_look else None
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene
         self._build_mesh()
@@ -318,10 +321,7 @@ class BlenderRenderer:
             raise JobError("bad_texture", f"texture_id {texture_id} is out of range: the category has "
                                           f"{self.assets.num_textures} textures")
         if not self.assets.textures:  # the asset's own base-colour texture (grey when it has none)
-            from bat3r_core.rig_io import read_any_asset
-
-            own = read_any_asset(self.assets.asset)[1].texture
-            own = own if own is not None else np.full((4, 4, 3), 160, np.uint8)
+            own = self.own_texture if self.own_texture is not None else np.full((4, 4, 3), 160, np.uint8)
             self._images[texture_id] = self._image_from_array("asset_base_colour", own)
             return self._images[texture_id]
         entry = self.assets.textures[texture_id]
