@@ -6,6 +6,7 @@ when given, ``"notes"`` (free text).
 """
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -53,8 +54,6 @@ def record_name(text: str) -> str:
     """argparse ``type`` of every benchmark's ``--record-as``: the name :func:`record` accepts, checked before the
     benchmark's minutes of work rather than after them."""
     if not _valid_stage(text):
-        import argparse
-
         raise argparse.ArgumentTypeError(f"expected a name of letters, digits, '_' or '-' (results/<name>.json), "
                                          f"got {text!r}")
     return text

@@ -46,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from _results import record_name  # noqa: E402
+from _results import RESULTS_DIR, record, record_name  # noqa: E402
 from bat3r_core import shards  # noqa: E402
 
 PACK_FORMAT = 1
@@ -347,7 +347,6 @@ def _record(args: argparse.Namespace) -> dict:
     """``benchmarks/results/<record-as>.json`` and RESULTS.md from the evaluations (``evaluate --json``), the device
     timings (``timings.json``) and the loop run's fits (their pose errors against the hidden truth, the filter's
     precision), with ``bench_fidelity``'s verdict lines."""
-    from _results import record
     from bench_fidelity import gap_recovered, map_error_figures, verdict_lines
     from bench_fit_oracle import filter_figures, pose_quality
 
@@ -411,7 +410,6 @@ def _record(args: argparse.Namespace) -> dict:
              f"benchmarks/gpu_rounds.py: Φ₀ {figures.get('phi0_steps', 0):.0f} steps, then one warm-started round of "
              f"{figures['round_steps']:.0f} steps per arm, batch {figures['batch_size']:.0f}. " + "; ".join(lines))
     record(args.record_as, figures, notes=notes, results_dir=args.results_dir)
-    from _results import RESULTS_DIR
     from bench_fidelity import plot
 
     arms = {arm: {0: {"mcd_cm": figures["mcd_phi0_iter0"]}, 1: {"mcd_cm": figures[f"mcd_{arm}_iter1"]}}
@@ -424,7 +422,6 @@ def _record(args: argparse.Namespace) -> dict:
 def _compare(args: argparse.Namespace) -> dict:
     """``results/<record-as>.json``: the test mCD, ΔR and map errors (``bench_fidelity.map_error_figures``) of the
     predictors of ``evaluate --json`` files side by side, with ``--notes`` saying what differs between them."""
-    from _results import record
     from bench_fidelity import map_error_figures
 
     from flows._settings import recorded_run
