@@ -32,49 +32,30 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _results import record, record_name  # noqa: E402
 
+from bat3r_core.rig_io import read_any_asset  # noqa: E402
+
 DEFAULT_ASSET = ROOT.parent / "shared" / "assets" / "dog_puppy" / "scene.gltf"
 
-_SUBDIVIDE = r"""
-import sys
-import bpy
-
-src, dst, levels = sys.argv[1], sys.argv[2], int(sys.argv[3])
-bpy.ops.wm.read_factory_settings(use_empty=True)
-bpy.ops.import_scene.gltf(filepath=src)
-meshes = [o for o in bpy.context.scene.objects if o.type == "MESH"]
-if not meshes:
-    sys.exit(f"{src}: no mesh")
-for obj in meshes:
-    if obj.data.shape_keys is not None:
-        obj.shape_key_clear()
-    if levels > 0:
-        mod = obj.modifiers.new("bat3r_subdivision", "SUBSURF")
-        mod.levels = mod.render_levels = levels
-        with bpy.context.temp_override(object=obj, active_object=obj, selected_objects=[obj]):
-            bpy.ops.object.modifier_move_to_index(modifier=mod.name, index=0)
-            bpy.ops.object.modifier_apply(modifier=mod.name)
-bpy.ops.export_scene.gltf(filepath=dst, export_format="GLB", export_skins=True, export_animations=False,
-                          export_morph=False)
-"""
+VARIANTS_SCRIPT = ROOT / "tests" / "assets" / "make_variants.py"  # the Blender variants of the asset tests
 
 _CHECK = r"""
 import json, sys
 from bat3r_core.asset_check import check_asset
-from bat3r_core.rig_io import read_any_asset
 path, out, scale = sys.argv[1], sys.argv[2], float(sys.argv[3])
-rig, _ = read_any_asset(path, scale)
 report = check_asset(path, out, scale=scale, resolution=64)
 f = report.figures
-print(json.dumps({"vertices": rig.num_vertices, "triangles": len(rig.faces), "failed": report.failed,
-                  "fit": f.get("fit_vertex_error_cm"), "rest": f.get("rest_vertex_error_cm"),
-                  "mask_iou": f.get("mask_iou")}))
+print(json.dumps({"failed": report.failed, "fit": f.get("fit_vertex_error_cm"),
+                  "rest": f.get("rest_vertex_error_cm"), "mask_iou": f.get("mask_iou")}))
 """
 
 
-def subdivide(src: Path, dst: Path, levels: int) -> Path:
-    """``src`` through Blender's glTF importer, shape keys cleared, ``levels`` of Catmull–Clark applied, as GLB."""
-    proc = subprocess.run([sys.executable, "-c", _SUBDIVIDE, str(src), str(dst), str(levels)],
+def subdivide(src: Path, dst_dir: Path, levels: int) -> Path:
+    """``src`` through Blender's glTF importer, shape keys cleared, ``levels`` of Catmull–Clark applied, as the GLB
+    ``dst_dir/subdivided_<levels>.glb`` (the ``subdivided_<N>`` variant of ``tests/assets/make_variants.py``)."""
+    name = f"subdivided_{levels}"
+    proc = subprocess.run([sys.executable, str(VARIANTS_SCRIPT), str(src), str(dst_dir), name],
                           capture_output=True, text=True, timeout=1800)
+    dst = dst_dir / f"{name}.glb"
     if proc.returncode != 0 or not dst.is_file():
         raise RuntimeError(f"subdividing {src} ({levels} levels) failed:\n{proc.stderr[-3000:]}")
     return dst
@@ -118,12 +99,15 @@ def main(argv: list[str] | None = None) -> dict:
     lines = []
     with tempfile.TemporaryDirectory(prefix="bat3r_bench_assets_") as tmp:
         for level in sorted(set(args.levels)):
-            glb = subdivide(args.asset, Path(tmp) / f"level{level}.glb", level)
+            glb = subdivide(args.asset, Path(tmp), level)
             s = timed_check(glb, Path(tmp) / f"check{level}", args.scale)
+            rig, _ = read_any_asset(glb, args.scale)  # the sizes, read outside the timed check
+            s.update(vertices=rig.num_vertices, triangles=len(rig.faces))
             # the check's figures are per view / per pose: report the worst IoU and the mean errors
             ious, fit, rest = s["mask_iou"] or [], s["fit"] or [], s["rest"] or []
             figures.update({f"vertices_{level}": s["vertices"], f"triangles_{level}": s["triangles"],
-                            f"check_s_{level}": round(s["seconds"], 1), f"peak_rss_gb_{level}": round(s["peak_rss_gb"], 2),
+                            f"check_s_{level}": round(s["seconds"], 1),
+                            f"peak_rss_gb_{level}": round(s["peak_rss_gb"], 2),
                             f"checks_passed_{level}": int(not s["failed"])})
             if ious:
                 figures[f"mask_iou_min_{level}"] = round(min(ious), 4)

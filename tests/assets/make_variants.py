@@ -14,6 +14,9 @@ Each NAME writes ``OUT_DIR/NAME.glb`` from a fresh import of ``IN.glb``:
 * ``rigid_child``: an eye (a small sphere) parented to the head bone, not skinned.
 * ``draco``: exported Draco-compressed (``KHR_draco_mesh_compression``), as web-optimised downloads are.
 * ``posed_draco``: ``posed_action`` exported Draco-compressed.
+* ``subdivided_<N>``: the mesh's shape keys cleared (Blender applies no modifier to a mesh with shape keys) and N
+  levels of Catmull–Clark subdivision applied before the skin (weights interpolated): a heavier asset of the same
+  animal (``benchmarks/bench_assets.py``); ``subdivided_0`` is the asset through Blender's importer and exporter.
 """
 from __future__ import annotations
 
@@ -114,6 +117,16 @@ def make(src: str, out_dir: Path, name: str) -> Path:
         eye.matrix_world = world
     elif name == "draco":
         options["export_draco_mesh_compression_enable"] = True
+    elif name.startswith("subdivided_") and name[len("subdivided_"):].isdigit():
+        if mesh.data.shape_keys is not None:
+            mesh.shape_key_clear()
+        levels = int(name[len("subdivided_"):])
+        if levels:
+            mod = mesh.modifiers.new("subdivision", "SUBSURF")
+            mod.levels = mod.render_levels = levels
+            with bpy.context.temp_override(object=mesh, active_object=mesh, selected_objects=[mesh]):
+                bpy.ops.object.modifier_move_to_index(modifier=mod.name, index=0)  # before the armature
+                bpy.ops.object.modifier_apply(modifier=mod.name)
     else:
         raise SystemExit(f"unknown variant {name!r}")
     _export(out, **options)

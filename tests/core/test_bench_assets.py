@@ -18,8 +18,8 @@ def test_subdivision_makes_a_heavier_rig_of_the_same_shape(toy_rig, tmp_path):
     interpolated, every vertex weighted), the same animal (bounding box within 3 %: subdivision shrinks convex
     parts a little), and level 0 the same mesh through Blender's exporter."""
     src = save_rig_glb(toy_rig, tmp_path / "toy.glb")
-    same, _ = read_asset(A.subdivide(src, tmp_path / "l0.glb", 0))
-    heavy, _ = read_asset(A.subdivide(src, tmp_path / "l1.glb", 1))
+    same, _ = read_asset(A.subdivide(src, tmp_path, 0))
+    heavy, _ = read_asset(A.subdivide(src, tmp_path, 1))
     assert len(same.faces) == len(toy_rig.faces)
     assert len(heavy.faces) == 6 * len(toy_rig.faces)
     assert heavy.num_vertices > 3 * same.num_vertices
