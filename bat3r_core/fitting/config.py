@@ -36,6 +36,14 @@ class FittingConfig:
             ~4–5 cm RMS across the image and ~20 cm in depth), so below 1 the fit trusts the maps' x, y — where
             each pixel's point lies across the image — more than their depth. The initial similarity is solved
             under the same weighting.
+        correspondence_refresh_steps: every this many steps, each control point is re-assigned the fitting-mesh
+            vertex nearest to it in the current fit, in the joint posed + canonical space
+            (``correspondences.reassign_vertices``: posed distance weighted like the data term, canonical distance
+            by ``correspondence_canonical_weight``). 0 = never: the paper's fixed nearest-canonical-vertex
+            correspondences. Predicted canonical maps are least right on limbs posed away from rest (a raised leg
+            labelled where it would hang); re-assignment lets the posed map correct those labels.
+        correspondence_canonical_weight: β of the re-assignment's canonical distance (1: a centimetre off in the
+            canonical map costs as much as a centimetre off in the posed map; large: the fixed correspondences).
         silhouette_vertices: fitting-mesh vertices (farthest point sample) whose projections the term checks.
         silhouette_mask_samples: mask pixels (at most; a seeded sample) that must be covered by a projection.
         silhouette_refresh_steps: each mask pixel's nearest projected vertex (the coverage's assignment, most of
@@ -102,6 +110,8 @@ class FittingConfig:
     weight_scale: float = 0.0
     weight_silhouette: float = 0.0
     data_depth_weight: float = 1.0
+    correspondence_refresh_steps: int = 0
+    correspondence_canonical_weight: float = 1.0
     silhouette_vertices: int = 600
     silhouette_mask_samples: int = 400
     silhouette_refresh_steps: int = 5
@@ -142,6 +152,9 @@ class FittingConfig:
         gem = self.geodesic_exact_max_vertices
         if isinstance(gem, bool) or not isinstance(gem, int) or gem < 0:
             raise ConfigError(f"FittingConfig.geodesic_exact_max_vertices must be an int >= 0, got {gem!r}")
+        crs = self.correspondence_refresh_steps
+        if isinstance(crs, bool) or not isinstance(crs, int) or crs < 0:
+            raise ConfigError(f"FittingConfig.correspondence_refresh_steps must be an int >= 0, got {crs!r}")
         if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
             raise ConfigError(f"FittingConfig.warmup_steps must be an int >= 0, got {self.warmup_steps!r}")
         for name in ("lr_rotations", "lr_bone_scales", "lr_global", "huber_delta", "inlier_distance",
@@ -149,7 +162,8 @@ class FittingConfig:
             if not getattr(self, name) > 0:
                 raise ConfigError(f"FittingConfig.{name} must be > 0, got {getattr(self, name)!r}")
         for name in ("weight_angle", "weight_edge", "weight_volume", "weight_repulsion", "weight_scale",
-                     "weight_silhouette", "data_depth_weight", "min_confidence", "repulsion_reference_length",
+                     "weight_silhouette", "data_depth_weight", "correspondence_canonical_weight", "min_confidence",
+                     "repulsion_reference_length",
                      "objective_reference_length", "weld_relative_tolerance", "densify_max_edge_fraction"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(f"FittingConfig.{name} must be >= 0, got {getattr(self, name)!r}")

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["Correspondences", "VertexIndex", "nearest_vertices"]
+__all__ = ["Correspondences", "VertexIndex", "nearest_vertices", "reassign_vertices"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -74,3 +74,33 @@ def nearest_vertices(rest_vertices: np.ndarray, canonical_points: np.ndarray, co
                      max_distance: float = np.inf, min_confidence: float = 2.0) -> Correspondences:
     """One-shot :meth:`VertexIndex.match` (builds the tree each call; use :class:`VertexIndex` for many images)."""
     return VertexIndex(rest_vertices).match(canonical_points, confidence, max_distance, min_confidence)
+
+
+def reassign_vertices(posed_vertices: np.ndarray, rest_vertices: np.ndarray, posed_points: np.ndarray,
+                      canonical_points: np.ndarray, canonical_weight: float,
+                      axis_weights: np.ndarray | None = None) -> np.ndarray:
+    """Re-assign each point the vertex nearest to it in the joint posed + canonical space.
+
+    Vertex ``j`` costs ``‖W (x_j − p_i)‖² + β² ‖v^c_j − q_i‖²``, with ``x_j`` the vertex in the current fit
+    (posed, prediction frame), ``v^c_j`` its rest position, ``p_i``/``q_i`` the point's predicted posed and canonical
+    positions, ``W = diag(axis_weights)`` and ``β = canonical_weight``. Large β gives back the nearest canonical vertex
+    (:meth:`VertexIndex.match`); β = 0 is the closest-point step of articulated ICP. In between, a point whose
+    predicted label lies on the wrong limb moves to the limb its posed position lies on once the fit has brought
+    that limb near it.
+
+    Args:
+        posed_vertices: (V, 3) the current fit's vertices, metres, prediction frame. rest_vertices: (V, 3) metres.
+        posed_points, canonical_points: (N, 3) metres. canonical_weight: β >= 0.
+        axis_weights: (3,) per-axis weights of the posed distance (None: isotropic).
+    Returns:
+        (N,) int64 vertex indices.
+    """
+    w = np.ones(3) if axis_weights is None else np.asarray(axis_weights, dtype=np.float64)
+    beta = float(canonical_weight)
+    if not beta >= 0:
+        raise ValueError(f"canonical_weight must be >= 0, got {canonical_weight!r}")
+    verts = np.concatenate([np.asarray(posed_vertices, dtype=np.float64) * w,
+                            beta * np.asarray(rest_vertices, dtype=np.float64)], 1)
+    points = np.concatenate([np.asarray(posed_points, dtype=np.float64) * w,
+                             beta * np.asarray(canonical_points, dtype=np.float64)], 1)
+    return cKDTree(verts).query(points)[1].astype(np.int64)

@@ -44,7 +44,7 @@ from bat3r_core.topology import Welding, subdivide_rig, weld_rig
 
 from .camera import CameraEstimate, recover_camera
 from .config import FittingConfig
-from .correspondences import VertexIndex
+from .correspondences import VertexIndex, reassign_vertices
 from .geodesics import (DenseGeodesics, LandmarkGeodesics, SubsetGeodesics, load_or_compute_geodesic_block,
                         load_or_compute_landmark_geodesics)
 from .losses import (MeshRegularisers, RegulariserMesh, angle_term, data_term, find_repulsion_pairs,
@@ -256,6 +256,7 @@ class _Prepared:
     index: int
     vertex: np.ndarray  # (n,) assigned fitting-mesh vertex per control point
     target: np.ndarray  # (n, 3) predicted posed points of the control points
+    canonical: np.ndarray  # (n, 3) predicted canonical points of the control points
     inlier_posed: np.ndarray  # (m, 3) predicted posed points of all inliers
     silhouette: SilhouetteTarget | None  # None: no silhouette term for this instance
 
@@ -310,7 +311,9 @@ def _prepare(asset: FittingAsset, inst: PointCloudInstance, config: FittingConfi
     ctrl = idx[pick]
     sil = silhouette_target(p, inst.pixels, inst.layers, inl, inst.mask, inst.intrinsics, inst.image_size,
                             config.silhouette_mask_samples, rng)
-    return (_Prepared(index=index, vertex=corr.vertex[ctrl], target=p[ctrl], inlier_posed=p[idx], silhouette=sil),
+    q = np.asarray(inst.canonical_points, dtype=np.float64)
+    return (_Prepared(index=index, vertex=corr.vertex[ctrl], target=p[ctrl], canonical=q[ctrl], inlier_posed=p[idx],
+                      silhouette=sil),
             "ok", "", info)
 
 
@@ -502,6 +505,19 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     # multiplied before the division by the unit, so w = 1 gives the very bits of the unweighted term)
     axis_w = torch.as_tensor([1.0, 1.0, config.data_depth_weight], **to)
 
+    canonical = [p.canonical for p in prepared]
+    axis_np = np.array([1.0, 1.0, config.data_depth_weight])
+
+    def reassign(m_data, rot, scale, trans) -> None:
+        """Re-assign every control point's vertex in the current fit (``correspondence_refresh_steps``)."""
+        nonlocal vertex_t
+        fit = _skin_all(fit_tensors, m_data, fit_rest_h)
+        fit = (scale[:, None, None] * fit @ rot.transpose(1, 2) + trans[:, None, :]).cpu().numpy().astype(np.float64)
+        for i, p in enumerate(prepared):
+            vertex[i, :len(p.vertex)] = reassign_vertices(fit[i], rest, p.target, canonical[i],
+                                                          config.correspondence_canonical_weight, axis_np)
+        vertex_t = torch.as_tensor(vertex, device=dev)
+
     def evaluate(step: int, final: bool = False):
         nonlocal pair_batch, pairs, sil_nearest
         th = theta * joint_mask[None, :, None]
@@ -550,7 +566,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                  + config.weight_repulsion * terms["repulsion"] + config.weight_scale * terms["scale"]
                  + config.weight_silhouette * terms["silhouette"])
         terms["total"] = total
-        return terms, m_unscaled, rot, scale, trans, scales
+        return terms, m_unscaled, rot, scale, trans, scales, m_data
 
     for step in range(config.steps):
         raise_if_stop_requested(f"fitting {len(prepared)} point clouds at step {step} of {config.steps}")
@@ -558,6 +574,11 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
         opt.param_groups[0]["lr"] = config.lr_rotations * halving
         if config.enable_bone_scales:  # the reference halves the bone scales' learning rate with θ's
             opt.param_groups[2]["lr"] = config.lr_bone_scales * halving
+        refresh = config.correspondence_refresh_steps
+        if refresh and step and step % refresh == 0:
+            with torch.no_grad():
+                _, _, rot_now, scale_now, trans_now, _, m_now = evaluate(step, final=False)
+                reassign(m_now, rot_now, scale_now, trans_now)
         opt.zero_grad(set_to_none=True)
         terms, *_ = evaluate(step)
         terms["total"].sum().backward()
@@ -567,7 +588,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             if config.enable_bone_scales:
                 log_bone.clamp_(lo, hi)
     with torch.no_grad():
-        terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps, final=True)
+        terms, m_unscaled, rot, scale, trans, scales, _ = evaluate(config.steps, final=True)
         terms["silhouette"] = torch.where(sil_batch.active > 0, terms["silhouette"],
                                           torch.full_like(terms["silhouette"], float("nan")))
         verts_u = _skin_all(tensors, m_unscaled, rest_h)  # the full file mesh, unit bone scales
