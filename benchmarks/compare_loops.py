@@ -11,7 +11,8 @@ next to the benchmark's recorded arms (``benchmarks/results/<fidelity>.json``).
         [--runs OTHER[:LABEL] ...] [--iteration I] --record-as fidelity_loop_silhouette
 
 Figures: ``mcd_<label>_iter<i>``, ``rot_err_deg_<label>_iter<i>``, ``median_fit_vertex_err_cm_<label>_iter<i>``,
-``filter_precision_<label>_iter<i>``, ``filter_base_rate_<label>_iter<i>`` for every variant, the benchmark's
+``filter_precision_<label>_iter<i>``, ``filter_base_rate_<label>_iter<i>``, ``fit_joint_angle_deg_<label>_iter<i>``
+(how far the fits articulate the rig: mean excess rotation of the non-root joints) for every variant, the benchmark's
 ``mcd_{loop,control,oracle}_iter<i>`` and ``rot_err_deg_…`` copied, ``gap_to_control_cm_<label>`` (the
 variant's test mCD at the benchmark's last iteration, or at ``--iteration``, minus the control's: negative = the
 variant beats the control) and ``gap_recovered_<label>`` (the share of the control → oracle gap it closes there).
@@ -73,7 +74,33 @@ def run_figures(run_dir: Path, label: str) -> dict[str, float]:
                             if e is not None], dtype=np.float64)
             if len(err):
                 figures[f"median_fit_vertex_err_cm_{label}_iter{i}"] = round(float(np.median(err)), 2)
+    for fit in sorted(run_dir.glob("iter-*/fit")):
+        angle = fit_joint_angle_deg(fit)
+        if angle is not None:
+            figures[f"fit_joint_angle_deg_{label}_iter{int(fit.parent.name.split('-')[1])}"] = round(angle, 1)
     return figures
+
+
+def fit_joint_angle_deg(fit_dir: Path) -> float | None:
+    """Mean excess rotation angle (degrees) of the non-root joints over an iteration's ok fits, or None.
+
+    How far the fits articulate the rig from its rest pose: what the loop's renders can teach beyond the canonical
+    renders (joint 0 is the root, whose rotation overlaps the global one; rigs keep parents before children)."""
+    import pyarrow.parquet as pq
+
+    poses = []
+    for part in sorted(fit_dir.glob("part-*.parquet")):
+        table = pq.read_table(part, columns=["status", "excess_rotations"])
+        for status, theta in zip(table.column("status").to_pylist(), table.column("excess_rotations").to_pylist()):
+            if status == "ok" and theta is not None:
+                poses.append(theta)
+    return joint_angle_deg(poses) if poses else None
+
+
+def joint_angle_deg(poses) -> float:
+    """Mean rotation angle (degrees) of the non-root joints over ``poses`` (each J·3 axis-angle, flat or (J, 3))."""
+    return float(np.degrees(np.concatenate([np.linalg.norm(np.asarray(t, dtype=np.float64).reshape(-1, 3)[1:], axis=1)
+                                            for t in poses])).mean())
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
@@ -86,6 +113,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                    help="compare at this iteration (default: the benchmark's last; e.g. 1 for one-iteration variants)")
     p.add_argument("--storage-root", type=Path, default=None,
                    help="where runs live (default: the data catalog's storage root)")
+    p.add_argument("--truth", type=Path, default=None, metavar="GROUND_TRUTH_NPZ",
+                   help="the collection's hidden ground truth (a generated collection's ground_truth.npz): adds "
+                        "truth_joint_angle_deg, how far the true poses articulate the rig, next to the fits'")
     p.add_argument("--record-as", type=record_name, required=True, help="name of the results/<name>.json to write")
     p.add_argument("--results-dir", type=Path, default=None,
                    help="write the json there and leave RESULTS.md alone (default: benchmarks/results)")
@@ -112,6 +142,11 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
 
         args.storage_root = load_catalog(None, validate_stages=False).storage()
     lines = []
+    if args.truth is not None:
+        from bat3r_core.evaluation_truth import load_ground_truth
+
+        truth = load_ground_truth(args.truth)
+        figures["truth_joint_angle_deg"] = round(joint_angle_deg([t["excess_rotations"] for t in truth.values()]), 1)
     for name, label in args.runs:
         got = run_figures(Path(args.storage_root) / args.category / name, label)
         figures.update(got)

@@ -3,6 +3,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
@@ -24,6 +25,11 @@ def _fake_run(root: Path, name: str, mcd: list[float]) -> Path:
     pq.write_table(pa.Table.from_pylist([{"sample_id": str(k), "vertex_err_cm": e}
                                          for k, e in enumerate([9.0, 11.0, 13.0, None])]),
                    ev / "pseudo_labels.parquet")
+    fit = run / "iter-01" / "fit"
+    fit.mkdir(parents=True)
+    theta = [[0.5, 0.0, 0.0] + [0.0, 0.1, 0.0] * 2, [0.0] * 3 + [0.3, 0.0, 0.4, 0.0, 0.0, 0.0], None]
+    pq.write_table(pa.Table.from_pylist([{"status": st, "excess_rotations": t} for st, t in
+                                         zip(["ok", "ok", "too_few_points"], theta)]), fit / "part-00000.parquet")
     return run
 
 
@@ -35,12 +41,22 @@ def test_variant_figures_sit_next_to_the_benchmark_arms(tmp_path):
         "rot_err_deg_control_iter2": 25.0, "mcd_phi0_on_collection": 10.8, "machine": "x"}))
     _fake_run(tmp_path / "runs", "good", [10.9, 10.6, 10.2])
     _fake_run(tmp_path / "runs", "bad", [10.9, 10.8, 10.7])
-    figures = C.main(["--fidelity", "fid", "--runs", "good:sil", "--runs", "bad", "--storage-root",
+    truth = tmp_path / "ground_truth.npz"
+    keys = ("global_scale", "global_rotation", "global_translation", "camera_rotation", "camera_translation", "K",
+            "posed_vertices")
+    np.savez(truth, sample_id=np.array(["a", "b"]), excess_rotations=np.array([[0.0] * 3 + [0.2, 0.0, 0.0],
+                                                                               [1.0, 0.0, 0.0] + [0.0, 0.0, 0.4]]),
+             **{k: np.zeros(2) for k in keys})
+    figures = C.main(["--fidelity", "fid", "--runs", "good:sil", "--runs", "bad", "--truth", str(truth),
+                      "--storage-root",
                       str(tmp_path / "runs"), "--record-as", "variants", "--results-dir", str(results)])
     assert figures["mcd_sil_iter2"] == 10.2 and figures["rot_err_deg_sil_iter1"] == 21.0
     assert figures["gap_to_control_cm_sil"] == pytest.approx(-0.2) and figures["gap_to_control_cm_bad"] == 0.3
     assert figures["filter_precision_sil_iter1"] == 0.25 and figures["filter_base_rate_bad_iter1"] == 0.125
     assert figures["median_fit_vertex_err_cm_sil_iter1"] == 11.0  # the unfitted row (None) is left out
+    # non-root joints of the ok fits: 0.1, 0.1, 0.5, 0 rad (the root's 0.5 rad and the unfitted row left out)
+    assert figures["fit_joint_angle_deg_sil_iter1"] == round(float(np.degrees(0.7 / 4)), 1)
+    assert figures["truth_joint_angle_deg"] == round(float(np.degrees(0.3)), 1)  # 0.2 and 0.4 rad, roots left out
     assert figures["mcd_control_iter2"] == 10.4 and "mcd_phi0_on_collection" not in figures
     saved = json.loads((results / "variants.json").read_text())
     assert "sil (good): iteration 2 test mCD 10.20 cm against the control's 10.40" in saved["notes"]
