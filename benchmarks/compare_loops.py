@@ -16,6 +16,8 @@ Figures: ``mcd_<label>_iter<i>``, ``rot_err_deg_<label>_iter<i>``, ``median_fit_
 ``mcd_{loop,control,oracle}_iter<i>`` and ``rot_err_deg_…`` copied, ``gap_to_control_cm_<label>`` (the
 variant's test mCD at the benchmark's last iteration, or at ``--iteration``, minus the control's: negative = the
 variant beats the control) and ``gap_recovered_<label>`` (the share of the control → oracle gap it closes there).
+A random-poses baseline trained on from the same Φ₀ (``--random-poses --init-predictor``, iterations 0) is one
+training round from Φ₀: its figures count as iteration 1.
 """
 from __future__ import annotations
 
@@ -52,10 +54,11 @@ def run_figures(run_dir: Path, label: str) -> dict[str, float]:
     if not metrics.is_file():
         raise FileNotFoundError(f"{metrics}: no such file (is {run_dir.name} a finished bootstrap run?)")
     figures: dict[str, float] = {}
+    shift = 1 if warm_started_baseline(run_dir) else 0
     for row in pq.read_table(metrics).to_pylist():
         if row.get("split") != "test" or row.get("mcd_cm") is None:
             continue
-        i = int(row["iteration"])
+        i = int(row["iteration"]) + shift
         figures[f"mcd_{label}_iter{i}"] = round(float(row["mcd_cm"]), 3)
         figures[f"rot_err_deg_{label}_iter{i}"] = round(float(row["rot_err_deg"]), 1)
     if not figures:
@@ -79,6 +82,19 @@ def run_figures(run_dir: Path, label: str) -> dict[str, float]:
         if angle is not None:
             figures[f"fit_joint_angle_deg_{label}_iter{int(fit.parent.name.split('-')[1])}"] = round(angle, 1)
     return figures
+
+
+def warm_started_baseline(run_dir: Path) -> bool:
+    """Whether the run is the random-poses baseline trained on from a given Φ₀ (``--random-poses
+    --init-predictor``, iterations 0): its iteration 0 is one training round from Φ₀, so its figures count as
+    iteration 1, where the control's first round is."""
+    manifest = run_dir / "manifest.json"
+    if not manifest.is_file():
+        return False
+    config = json.loads(manifest.read_text()).get("config", {})
+    parameters = config.get("parameters", {})
+    return bool(config.get("ablations", {}).get("random_poses") and parameters.get("init_predictor")
+                and parameters.get("iterations") == 0)
 
 
 def fit_joint_angle_deg(fit_dir: Path) -> float | None:

@@ -121,13 +121,23 @@ def canonical_initialisation(category: str, preset: str, run_name: str, override
     """Iteration 0: sample render jobs around the rest-pose mesh, render them, extract features, train Φ_0.
     catalog: the data catalog file (default: ``$BAT3R_CATALOG`` / ``./data_catalog.yaml``). data_drops: the run
     data's ``SampleDrops`` mappings (collection, test split), listed in this iteration's summary.
-    init_predictor: a trained Φ_0 checkpoint to start from instead (iteration 0 then only evaluates it).
+    init_predictor: a trained Φ_0 checkpoint to start from instead (iteration 0 then only evaluates it; with the
+        ``random_poses`` ablation it trains that checkpoint on for ``train.steps`` on renders of random poses, the
+        random-poses baseline as an arm of equal training compute next to a loop from the same Φ_0).
     Returns ``{"stages": {stage: [records]}, "states": {stage: [state names]}, "predictor": path, "metrics": rows}``."""
     settings = resolve_run(category, preset, run_name, overrides, ablations, catalog=catalog,
                            max_failed_fraction=max_failed_fraction)
     cfg = stage_specs(settings, seed)
     it = _Iteration(settings, 0, _data_drops(data_drops))
     replay = settings.train.canonical_replay > 0
+    if init_predictor is not None and settings.ablations.random_poses:
+        # the random-poses baseline as an arm from a given Φ_0: its weights trained on for train.steps on renders of
+        # random poses (as the loop's iterations and the control are trained on from the same Φ_0)
+        get_run_logger().info("iteration 0: Φ_0 from %s, trained on renders of random poses", init_predictor)
+        it.notes.append(f"random-poses baseline started from {init_predictor} (init_predictor; train.warm_start = "
+                        f"{settings.train.warm_start}).")
+        _render_canonical(it, cfg)  # the plan of this run's ablations: random-pose jobs
+        return _train_and_evaluate(it, cfg, str(init_predictor))
     if init_predictor is not None:
         get_run_logger().info("iteration 0: Φ_0 from %s (no training%s)", init_predictor,
                               "; canonical renders for train.canonical_replay" if replay else ", no canonical renders")
@@ -337,7 +347,9 @@ def bootstrap(category: str = "toy", preset: str = "tiny", iterations: int | Non
             what ``manifest.json`` records (``config.parameters.catalog``).
         init_predictor: start the loop from this trained Φ_0 checkpoint (e.g. another run's
             ``iter-00/train/predictor.pt``) instead of training one: iteration 0 only evaluates it. Ablations of
-            one Φ_0 (``benchmarks/bench_fidelity.py``) share it this way.
+            one Φ_0 (``benchmarks/bench_fidelity.py``) share it this way. With ``random_poses`` (iterations 0)
+            iteration 0 trains it on for ``train.steps`` on renders of random poses: the random-poses baseline as
+            an arm of equal training compute.
 
     A stage that drops more than ``bat3r_core.runs.DROP_WARN_FRACTION`` of its samples is reported (log warning,
     ``…-drops`` artifact, iteration summary); a stage that leaves fewer samples than the next one needs stops the

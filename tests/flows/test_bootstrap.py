@@ -293,6 +293,29 @@ def test_canonical_replay_trains_on_iteration_zero_renders_too(first_run, catalo
     assert train["n_samples"] == n_pseudo + train["n_replayed"]
 
 
+def test_random_poses_baseline_from_a_given_phi0_trains_it_on(first_run, catalog):
+    """random_poses with init_predictor: the random-poses baseline as an arm from another run's Φ₀ — iteration 0
+    renders random poses and trains that Φ₀ on (a warm start), instead of only evaluating it."""
+    import torch
+
+    from flows.bootstrap import bootstrap
+
+    base = RunLayout(catalog / "runs", "toy", "t1")
+    phi0 = base.stage_dir(0, "train") / "predictor.pt"
+    result = bootstrap(category="toy", preset="tiny", iterations=0, run_name="rp-warm", random_poses=True,
+                       overrides={**TINY, "train.steps": 3}, init_predictor=str(phi0))
+    layout = RunLayout(catalog / "runs", "toy", "rp-warm")
+    it = result["iterations"][0]
+    assert it["predictor"] == str(layout.stage_dir(0, "train") / "predictor.pt") != str(phi0)
+    table = shards.read_table(layout.stage_dir(0, "render"))
+    assert set(table.column("view_kind").to_pylist()) == {"random_pose"}
+    mine, theirs = (torch.load(p, map_location="cpu", weights_only=True) for p in (it["predictor"], phi0))
+    # 3 steps from Φ₀'s weights: close to them, not equal (a model trained from scratch would be nowhere near)
+    key = next(k for k, v in theirs["model"].items() if v.dtype.is_floating_point and v.numel() > 100)
+    diff = (mine["model"][key] - theirs["model"][key]).abs()
+    assert 0 < diff.max() < 0.1 * theirs["model"][key].abs().max(), diff.max()
+
+
 def test_baselines_that_do_not_iterate_say_so(prefect_harness, catalog):
     from flows.bootstrap import bootstrap
 
