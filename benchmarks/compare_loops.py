@@ -81,6 +81,10 @@ def run_figures(run_dir: Path, label: str) -> dict[str, float]:
         angle = fit_joint_angle_deg(fit)
         if angle is not None:
             figures[f"fit_joint_angle_deg_{label}_iter{int(fit.parent.name.split('-')[1])}"] = round(angle, 1)
+    if shift:  # the random poses it trained on, in place of fits
+        angle = fit_joint_angle_deg(run_dir / "iter-00" / "plan")
+        if angle is not None:
+            figures[f"fit_joint_angle_deg_{label}_iter1"] = round(angle, 1)
     return figures
 
 
@@ -98,7 +102,8 @@ def warm_started_baseline(run_dir: Path) -> bool:
 
 
 def fit_joint_angle_deg(fit_dir: Path) -> float | None:
-    """Mean excess rotation angle (degrees) of the non-root joints over an iteration's ok fits, or None.
+    """Mean excess rotation angle (degrees) of the non-root joints over an iteration's ok fits (or a plan's render
+    jobs, which have no status column), or None.
 
     How far the fits articulate the rig from its rest pose: what the loop's renders can teach beyond the canonical
     renders (joint 0 is the root, whose rotation overlaps the global one; rigs keep parents before children)."""
@@ -106,9 +111,10 @@ def fit_joint_angle_deg(fit_dir: Path) -> float | None:
 
     poses = []
     for part in sorted(fit_dir.glob("part-*.parquet")):
-        table = pq.read_table(part, columns=["status", "excess_rotations"])
-        for status, theta in zip(table.column("status").to_pylist(), table.column("excess_rotations").to_pylist()):
-            if status == "ok" and theta is not None:
+        table = pq.read_table(part)
+        status = table.column("status").to_pylist() if "status" in table.column_names else ["ok"] * len(table)
+        for st, theta in zip(status, table.column("excess_rotations").to_pylist()):
+            if st == "ok" and theta is not None:
                 poses.append(theta)
     return joint_angle_deg(poses) if poses else None
 

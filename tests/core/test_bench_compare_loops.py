@@ -79,12 +79,16 @@ def test_a_random_poses_arm_from_phi0_counts_as_one_round(tmp_path):
     (results / "fid.json").write_text(json.dumps({"mcd_control_iter1": 10.5, "mcd_oracle_iter1": 10.0}))
     for name, iterations, random_poses in (("rp", 0, True), ("rp-scratch", 0, False)):
         run = _fake_run(tmp_path / "runs", name, [10.2])
+        (run / "iter-00" / "plan").mkdir(parents=True)
+        pq.write_table(pa.Table.from_pylist([{"sample_id": "j0", "excess_rotations": [0.3, 0, 0, 0, 0.2, 0]}]),
+                       run / "iter-00" / "plan" / "part-00000.parquet")
         (run / "manifest.json").write_text(json.dumps({"config": {
             "ablations": {"random_poses": random_poses},
             "parameters": {"iterations": iterations, "init_predictor": "/x/predictor.pt"}}}))
     figures = C.main(["--fidelity", "fid", "--runs", "rp", "--runs", "rp-scratch", "--storage-root",
                       str(tmp_path / "runs"), "--iteration", "1", "--record-as", "v", "--results-dir", str(results)])
     assert figures["mcd_rp_iter1"] == 10.2 and "mcd_rp_iter0" not in figures
+    assert figures["fit_joint_angle_deg_rp_iter1"] == round(float(np.degrees(0.2)), 1)  # the random poses' joints
     assert figures["gap_to_control_cm_rp"] == pytest.approx(-0.3) and figures["gap_recovered_rp"] == pytest.approx(0.6)
     assert figures["mcd_rp_scratch_iter0"] == 10.2 and "gap_to_control_cm_rp_scratch" not in figures
 
