@@ -5,6 +5,7 @@
   for the poses real animals take and is used ONLY to synthesise the toy image collection and its hidden test
   ground truth; the bootstrap never sees its output except through rendered images.
 * :func:`pose_features` — f_ang, f_sq, f_dist of the supplement (pose clustering and complexity bins).
+* :func:`mean_joint_angle_deg` — how far a set of poses articulates the rig (f_ang of the non-root joints).
 
 Rotations are excess rotations θ (axis-angle, radians) in each joint's rest frame (see
 :mod:`bat3r_core.skinning`).
@@ -20,7 +21,7 @@ from scipy.special import ndtr, ndtri
 from .rig import Rig
 
 __all__ = ["RandomPoseConfig", "sample_random_poses", "sample_toy_natural_poses", "TOY_POSE_FAMILIES",
-           "pose_family_weights", "pose_features"]
+           "pose_family_weights", "pose_features", "mean_joint_angle_deg"]
 
 
 @dataclass(frozen=True)
@@ -274,3 +275,13 @@ def pose_features(excess_rotations: np.ndarray, posed_joints: np.ndarray, rest_j
     f_dist = np.array([np.linalg.norm(kabsch(posed[i], rest).apply(posed[i]) - rest, axis=1).sum()
                        for i in range(len(theta))])
     return np.stack([f_ang, f_sq, f_dist], 1)
+
+
+def mean_joint_angle_deg(poses) -> float:
+    """Mean rotation angle, degrees, of the non-root joints over ``poses``: each an excess rotation θ, (J, 3) or flat
+    J·3 axis-angle. Joint 0 is the root (rigs keep parents before children), whose rotation overlaps the global
+    one and is left out. How far a set of fits or render jobs articulates the rig away from its rest pose."""
+    angles = [np.linalg.norm(np.asarray(t, dtype=np.float64).reshape(-1, 3)[1:], axis=1) for t in poses]
+    if not angles:
+        raise ValueError("poses is empty")
+    return float(np.degrees(np.concatenate(angles)).mean())

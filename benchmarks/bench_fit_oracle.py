@@ -9,7 +9,10 @@ crop of the image) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
 * the per-image RMS error of the predicted Q and of the predicted P (centred, per camera axis; z is depth);
 * the pose error of fits (``bat3r_core.evaluation_truth.pseudo_label_errors``: mean vertex error after rigid alignment)
   with the run's fitting configuration on four versions of the same points: as predicted, with P replaced by P*,
-  with Q replaced by Q*, with both replaced, next to the rest pose (no fitting at all).
+  with Q replaced by Q*, with both replaced, next to the rest pose (no fitting at all);
+* how far each version's fits articulate the rig (``fit_joint_angle_deg_<version>``, the mean rotation of the
+  non-root joints) next to the true poses (``truth_joint_angle_deg``): fits that barely leave the rest pose can beat
+  it without showing the poses the photos show.
 
 Only points whose pixel and layer are occupied in the truth take part, in every version, so the four fits see
 the same points. A fit is only worth rendering when it beats the rest pose; the table says which map has to
@@ -51,6 +54,7 @@ from bat3r_core.config_utils import ConfigError, replace_path  # noqa: E402
 from bat3r_core.fitting.fit import FittingAsset, PointCloudInstance, fit_batch  # noqa: E402
 from bat3r_core.fitting.io import fit_rows, instances_from_predictions  # noqa: E402
 from bat3r_core.pointmaps import dual_point_maps  # noqa: E402
+from bat3r_core.poses import mean_joint_angle_deg  # noqa: E402
 from bat3r_core.predictor.collection import CropTransform, crop_transform_from_row  # noqa: E402
 from bat3r_core.rig_io import load_rig  # noqa: E402
 from flows._settings import recorded_run  # noqa: E402
@@ -294,6 +298,8 @@ def main(argv: list[str] | None = None) -> dict:
     figures: dict[str, float] = {"images": len(instances)}
     for key in errors[0]:
         figures[f"median_{key}"] = round(float(np.median([e[key] for e in errors])), 3)
+    figures["truth_joint_angle_deg"] = round(mean_joint_angle_deg([gt[i.sample_id]["excess_rotations"]
+                                                                   for i in instances]), 1)
     asset = FittingAsset.prepare(rig, fitting, cache_dir=layout.storage_root / "_cache" / "geodesics")
     versions = [(name, functools.partial(substitute, true_p=VERSIONS[name][0], true_q=VERSIONS[name][1]))
                 for name in args.versions]
@@ -313,11 +319,16 @@ def main(argv: list[str] | None = None) -> dict:
         figures[f"fit_vertex_err_cm_{name}"] = round(quality["vertex_err_cm"], 2)
         figures[f"pct_better_than_rest_{name}"] = round(quality["pct_better_than_rest"], 1)
         figures[f"median_fit_vertex_err_cm_{name}"] = round(quality["median_vertex_err_cm"], 2)
+        ok = [r["excess_rotations"] for r in rows if r["status"] == "ok"]
+        if ok:  # how far the fits articulate the rig: near-rest fits can beat the rest pose by barely leaving it
+            figures[f"fit_joint_angle_deg_{name}"] = round(mean_joint_angle_deg(ok), 1)
         figures["rest_pose_vertex_err_cm"] = round(quality["rest_pose_vertex_err_cm"], 2)
         figures["median_rest_pose_vertex_err_cm"] = round(quality["median_rest_pose_vertex_err_cm"], 2)
         print(f"{name:>13}: fits {quality['vertex_err_cm']:.2f} cm from the truth (rest pose "
               f"{quality['rest_pose_vertex_err_cm']:.2f} cm), better than the rest pose for "
-              f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images"
+              f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images; mean joint angle "
+              f"{figures.get(f'fit_joint_angle_deg_{name}', float('nan')):.1f}° (truth "
+              f"{figures['truth_joint_angle_deg']:.1f}°)"
               + (f"; the run's filter keeps them with precision {figures[f'refit_filter_precision_{name}']:.2f}"
                  if f"refit_filter_precision_{name}" in figures else ""), flush=True)
         quarters = {k[len("rank_precision_q0.25_"):]: v for k, v in ranked_refit.items()

@@ -34,6 +34,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _results import RESULTS_DIR, record, record_name  # noqa: E402
 
+from bat3r_core.poses import mean_joint_angle_deg  # noqa: E402
+
 ARMS = ("loop", "control", "oracle")
 
 
@@ -116,13 +118,7 @@ def fit_joint_angle_deg(fit_dir: Path) -> float | None:
         for st, theta in zip(status, table.column("excess_rotations").to_pylist()):
             if st == "ok" and theta is not None:
                 poses.append(theta)
-    return joint_angle_deg(poses) if poses else None
-
-
-def joint_angle_deg(poses) -> float:
-    """Mean rotation angle (degrees) of the non-root joints over ``poses`` (each J·3 axis-angle, flat or (J, 3))."""
-    return float(np.degrees(np.concatenate([np.linalg.norm(np.asarray(t, dtype=np.float64).reshape(-1, 3)[1:], axis=1)
-                                            for t in poses])).mean())
+    return mean_joint_angle_deg(poses) if poses else None
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
@@ -168,7 +164,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         from bat3r_core.evaluation_truth import load_ground_truth
 
         truth = load_ground_truth(args.truth)
-        figures["truth_joint_angle_deg"] = round(joint_angle_deg([t["excess_rotations"] for t in truth.values()]), 1)
+        poses = [t["excess_rotations"] for t in truth.values()]
+        figures["truth_joint_angle_deg"] = round(mean_joint_angle_deg(poses), 1)
     for name, label in args.runs:
         got = run_figures(Path(args.storage_root) / args.category / name, label)
         figures.update(got)

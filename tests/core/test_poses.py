@@ -3,7 +3,7 @@ import pytest
 import torch
 from scipy import stats
 
-from bat3r_core.poses import (RandomPoseConfig, pose_features, sample_random_poses,
+from bat3r_core.poses import (RandomPoseConfig, mean_joint_angle_deg, pose_features, sample_random_poses,
                               sample_toy_natural_poses, TOY_POSE_FAMILIES)
 from bat3r_core.skinning import axis_angle_to_matrix, skin
 
@@ -149,3 +149,19 @@ def test_pose_family_weights_reads_a_catalog_mapping():
                          ({"lie": float("inf")}, "expected relative frequencies")):
         with pytest.raises(ValueError, match=message):
             pose_family_weights(bad)
+
+
+def test_mean_joint_angle_leaves_the_root_out_and_matches_f_ang(toy_rig):
+    theta, _ = sample_random_poses(toy_rig, 6, seed=41)
+    exclude = np.zeros(toy_rig.num_joints, dtype=bool)
+    exclude[0] = True
+    out = skin(toy_rig.tensors(dtype=torch.float64), torch.as_tensor(theta))
+    f_ang = pose_features(theta, out.joints.numpy(), toy_rig.rest_joint_positions, exclude=exclude)[:, 0]
+    # every pose has J - 1 non-root joints: the mean over poses of f_ang, in degrees
+    assert mean_joint_angle_deg(theta) == pytest.approx(np.degrees(f_ang.mean()), rel=1e-12)
+    assert mean_joint_angle_deg([t.reshape(-1) for t in theta]) == mean_joint_angle_deg(theta)
+    root_only = np.zeros_like(theta[:1])
+    root_only[0, 0] = [1.0, 0.0, 0.0]
+    assert mean_joint_angle_deg(root_only) == 0.0
+    with pytest.raises(ValueError, match="poses is empty"):
+        mean_joint_angle_deg([])
