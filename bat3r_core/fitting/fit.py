@@ -505,34 +505,41 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
     # multiplied before the division by the unit, so w = 1 gives the very bits of the unweighted term)
     axis_w = torch.as_tensor([1.0, 1.0, config.data_depth_weight], **to)
 
-    canonical = [p.canonical for p in prepared]
+    def articulation():
+        """The masked θ, the unscaled skinning matrices, the bone scales and the data term's skinning matrices
+        (with the bone scales when they are optimised)."""
+        th = theta * joint_mask[None, :, None]
+        m_unscaled = _skinning_matrices(tensors, forward_kinematics(tensors, th))
+        if config.enable_bone_scales:
+            scales = torch.exp(log_bone)
+            return th, m_unscaled, scales, _skinning_matrices(tensors, forward_kinematics(tensors, th, scales))
+        return th, m_unscaled, torch.ones_like(log_bone), m_unscaled
+
+    def similarity():
+        """The global similarity (rotation, scale, translation) canonical → prediction frame."""
+        return axis_angle_to_matrix(omega) @ r0_t, torch.exp(logs0_t + d_logs), t0_t + d_trans
+
     axis_np = np.array([1.0, 1.0, config.data_depth_weight])
 
-    def reassign(m_data, rot, scale, trans) -> None:
+    def reassign() -> None:
         """Re-assign every control point's vertex in the current fit (``correspondence_refresh_steps``)."""
         nonlocal vertex_t
-        fit = _skin_all(fit_tensors, m_data, fit_rest_h)
-        fit = (scale[:, None, None] * fit @ rot.transpose(1, 2) + trans[:, None, :]).cpu().numpy().astype(np.float64)
+        with torch.no_grad():
+            _, _, _, m_data = articulation()
+            rot, scale, trans = similarity()
+            fit = scale[:, None, None] * _skin_all(fit_tensors, m_data, fit_rest_h) @ rot.transpose(1, 2)
+            fit = (fit + trans[:, None, :]).cpu().numpy().astype(np.float64)
         for i, p in enumerate(prepared):
-            vertex[i, :len(p.vertex)] = reassign_vertices(fit[i], rest, p.target, canonical[i],
+            vertex[i, :len(p.vertex)] = reassign_vertices(fit[i], rest, p.target, p.canonical,
                                                           config.correspondence_canonical_weight, axis_np)
         vertex_t = torch.as_tensor(vertex, device=dev)
 
     def evaluate(step: int, final: bool = False):
         nonlocal pair_batch, pairs, sil_nearest
-        th = theta * joint_mask[None, :, None]
-        g_unscaled = forward_kinematics(tensors, th)
-        m_unscaled = _skinning_matrices(tensors, g_unscaled)
+        th, m_unscaled, scales, m_data = articulation()
         verts_u = _skin_all(reg_tensors, m_unscaled, reg_rest_h)  # (B, Vr, 3) unscaled articulated (proxy) mesh
-        if config.enable_bone_scales:
-            scales = torch.exp(log_bone)
-            m_data = _skinning_matrices(tensors, forward_kinematics(tensors, th, scales))
-        else:
-            scales, m_data = torch.ones_like(log_bone), m_unscaled
         ctrl = _skin_subset(fit_tensors, m_data, fit_rest_h, vertex_t)  # (B, N, 3) control vertices, scaled mesh
-        rot = axis_angle_to_matrix(omega) @ r0_t
-        scale = torch.exp(logs0_t + d_logs)
-        trans = t0_t + d_trans
+        rot, scale, trans = similarity()
         posed_ctrl = scale[:, None, None] * ctrl @ rot.transpose(1, 2) + trans[:, None, :]
         if step % config.repulsion_refresh_steps == 0 and config.weight_repulsion > 0:
             vu = verts_u.detach().cpu().numpy().astype(np.float64)
@@ -566,7 +573,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
                  + config.weight_repulsion * terms["repulsion"] + config.weight_scale * terms["scale"]
                  + config.weight_silhouette * terms["silhouette"])
         terms["total"] = total
-        return terms, m_unscaled, rot, scale, trans, scales, m_data
+        return terms, m_unscaled, rot, scale, trans, scales
 
     for step in range(config.steps):
         raise_if_stop_requested(f"fitting {len(prepared)} point clouds at step {step} of {config.steps}")
@@ -576,9 +583,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             opt.param_groups[2]["lr"] = config.lr_bone_scales * halving
         refresh = config.correspondence_refresh_steps
         if refresh and step and step % refresh == 0:
-            with torch.no_grad():
-                _, _, rot_now, scale_now, trans_now, _, m_now = evaluate(step, final=False)
-                reassign(m_now, rot_now, scale_now, trans_now)
+            reassign()
         opt.zero_grad(set_to_none=True)
         terms, *_ = evaluate(step)
         terms["total"].sum().backward()
@@ -588,7 +593,7 @@ def _optimise(asset: FittingAsset, prepared: list[_Prepared], config: FittingCon
             if config.enable_bone_scales:
                 log_bone.clamp_(lo, hi)
     with torch.no_grad():
-        terms, m_unscaled, rot, scale, trans, scales, _ = evaluate(config.steps, final=True)
+        terms, m_unscaled, rot, scale, trans, scales = evaluate(config.steps, final=True)
         terms["silhouette"] = torch.where(sil_batch.active > 0, terms["silhouette"],
                                           torch.full_like(terms["silhouette"], float("nan")))
         verts_u = _skin_all(tensors, m_unscaled, rest_h)  # the full file mesh, unit bone scales
