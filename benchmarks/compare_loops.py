@@ -33,8 +33,10 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from _results import RESULTS_DIR, record, record_name  # noqa: E402
+from bench_fidelity import gap_recovered  # noqa: E402
 
 from bat3r_core.poses import mean_joint_angle_deg  # noqa: E402
+from bat3r_core.runs import RunLayout, read_manifest  # noqa: E402
 
 ARMS = ("loop", "control", "oracle")
 
@@ -94,10 +96,7 @@ def warm_started_baseline(run_dir: Path) -> bool:
     """Whether the run is the random-poses baseline trained on from a given Φ₀ (``--random-poses
     --init-predictor``, iterations 0): its iteration 0 is one training round from Φ₀, so its figures count as
     iteration 1, where the control's first round is."""
-    manifest = run_dir / "manifest.json"
-    if not manifest.is_file():
-        return False
-    config = json.loads(manifest.read_text()).get("config", {})
+    config = read_manifest(RunLayout(run_dir.parents[1], run_dir.parent.name, run_dir.name)).get("config", {})
     parameters = config.get("parameters", {})
     return bool(config.get("ablations", {}).get("random_poses") and parameters.get("init_predictor")
                 and parameters.get("iterations") == 0)
@@ -113,8 +112,9 @@ def fit_joint_angle_deg(fit_dir: Path) -> float | None:
 
     poses = []
     for part in sorted(fit_dir.glob("part-*.parquet")):
-        table = pq.read_table(part)
-        status = table.column("status").to_pylist() if "status" in table.column_names else ["ok"] * len(table)
+        columns = [c for c in ("status", "excess_rotations") if c in pq.read_schema(part).names]
+        table = pq.read_table(part, columns=columns)
+        status = table.column("status").to_pylist() if "status" in columns else ["ok"] * len(table)
         for st, theta in zip(status, table.column("excess_rotations").to_pylist()):
             if st == "ok" and theta is not None:
                 poses.append(theta)
@@ -174,8 +174,10 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             gap = round(final - figures[f"mcd_control_iter{last}"], 3)
             figures[f"gap_to_control_cm_{label}"] = gap
             oracle = figures.get(f"mcd_oracle_iter{last}")
-            if oracle is not None and figures[f"mcd_control_iter{last}"] > oracle:  # share of the gap recovered
-                figures[f"gap_recovered_{label}"] = round(-gap / (figures[f"mcd_control_iter{last}"] - oracle), 3)
+            control = figures[f"mcd_control_iter{last}"]
+            recovered = float("nan") if oracle is None else gap_recovered(control, oracle, final)
+            if np.isfinite(recovered):  # the share of the control -> oracle gap it closes (none: no gap)
+                figures[f"gap_recovered_{label}"] = round(recovered, 3)
             lines.append(f"{label} ({name}): iteration {last} test mCD {final:.2f} cm against the control's "
                          f"{figures[f'mcd_control_iter{last}']:.2f} and the loop's "
                          f"{figures.get(f'mcd_loop_iter{last}', float('nan')):.2f}: "
