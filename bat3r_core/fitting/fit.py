@@ -419,7 +419,8 @@ def fit_batch(asset: FittingAsset, instances: list[PointCloudInstance], config: 
             out["num_control_points"][k] = len(prep.vertex)
             out["residual_chamfer"][k] = rms_chamfer(prep.inlier_posed, fitted["posed_fitting_vertices"][slot])
             cameras[k] = _camera_of(asset, instances[k], fitted["world_fitting_vertices"][slot],
-                                    fitted["global_rotation"][slot], config, fit_focal)
+                                    fitted["global_rotation"][slot], config, fit_focal,
+                                    fitted["posed_fitting_vertices"][slot])
     return FitResult(sample_id=[str(i.sample_id) for i in instances], status=statuses, reason=reasons,
                      cameras=cameras, **out)
 
@@ -429,11 +430,15 @@ _MIN_FRONT_POINTS = 8
 
 
 def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np.ndarray, rotation: np.ndarray,
-               config: FittingConfig, fit_focal: bool) -> CameraEstimate | None:
+               config: FittingConfig, fit_focal: bool, posed_vertices: np.ndarray | None = None
+               ) -> CameraEstimate | None:
     """Camera of one fitted instance from its layer-0 pixels (None without pixels or intrinsics).
 
     ``world_vertices`` (Vf, 3): the fitting mesh posed by θ (unit bone scales, canonical frame), which the
-    correspondences index."""
+    correspondences index; ``posed_vertices`` (Vf, 3): the same mesh in the prediction frame (the final fit). With
+    ``correspondence_refresh_steps`` > 0 each pixel's point takes the vertex the fit itself would re-assign it
+    (:func:`~.correspondences.reassign_vertices` in the final fit), so the camera reads the correspondences the fit
+    ended with, not the predicted labels it corrected."""
     if inst.pixels is None or inst.intrinsics is None:
         return None
     layers = np.zeros(len(inst.pixels), dtype=np.int64) if inst.layers is None else np.asarray(inst.layers)
@@ -445,7 +450,15 @@ def _camera_of(asset: FittingAsset, inst: PointCloudInstance, world_vertices: np
         front = corr.inlier
     if front.sum() < 2:
         return None
-    rotated = world_vertices[corr.vertex[front]] @ rotation.T  # (n, 3) fitted points, camera orientation
+    vertex = corr.vertex[front]
+    if config.correspondence_refresh_steps and posed_vertices is not None:
+        p = np.asarray(inst.posed_points, dtype=np.float64)[front]
+        ok = np.isfinite(p).all(1)  # a point without a posed position keeps its predicted label
+        vertex[ok] = reassign_vertices(posed_vertices, asset.fitting_rig.rest_vertices, p[ok],
+                                       np.asarray(inst.canonical_points, dtype=np.float64)[front][ok],
+                                       config.correspondence_canonical_weight,
+                                       np.array([1.0, 1.0, config.data_depth_weight]))
+    rotated = world_vertices[vertex] @ rotation.T  # (n, 3) fitted points, camera orientation
     seed = np.random.default_rng([config.seed, 7, _id_seed(inst.sample_id)])
     return recover_camera(rotation, rotated, np.asarray(inst.pixels, dtype=np.float64)[front],
                           np.asarray(inst.intrinsics, dtype=np.float64), rng=seed, fit_focal=fit_focal,
