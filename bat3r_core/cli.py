@@ -325,7 +325,8 @@ def _cmd_collection_coco(args: argparse.Namespace) -> int:
 
     try:
         conv = coco_to_collection(args.annotations, args.images, args.category, args.out, min_area=args.min_area,
-                                  largest_only=args.largest_only, exclude_truncated=args.exclude_truncated)
+                                  largest_only=args.largest_only, exclude_truncated=args.exclude_truncated,
+                                  max_occlusion=args.max_occlusion)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -483,6 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
     cc.add_argument("--largest-only", action="store_true", help="one sample per image: its largest instance")
     cc.add_argument("--exclude-truncated", action="store_true",
                     help="skip instances whose mask touches the image border (cut off by the photo's edge)")
+    cc.add_argument("--max-occlusion", type=float, default=None, metavar="F",
+                    help="skip instances whose outline runs along other annotated objects (a rider, another "
+                    "animal) for more than this fraction of it, e.g. 0.1 (default: keep them)")
     cc.set_defaults(func=_cmd_collection_coco)
 
     tr = sub.add_parser("train", help="train a dual point map predictor on rendered training shards")

@@ -17,7 +17,9 @@ turns one category of such a file into the Parquet-index layout every bat3r stag
   crowd annotations (``iscrowd`` 1: several animals in one mask), instances below ``min_area`` mask pixels,
   annotations whose segmentation is missing, malformed or of another size than its image, and with
   ``exclude_truncated`` instances whose mask touches the image border (the animal continues outside the photo:
-  its crop shows part of a body the fit would place as a whole).
+  its crop shows part of a body the fit would place as a whole), and with ``max_occlusion`` instances whose outline
+  runs along another annotated object for more than that fraction of it (:func:`occlusion_fraction`: a rider on a
+  horse, a foal in front of its mare), whose mask lacks the parts hidden behind it.
 """
 from __future__ import annotations
 
@@ -34,10 +36,13 @@ import numpy as np
 from bat3r_core.shards import atomic_write, atomic_write_bytes, atomic_write_text
 
 __all__ = ["CocoConversion", "rle_counts", "decode_rle", "polygons_to_mask", "segmentation_to_mask",
-           "coco_to_collection", "CONVERSION_FILE", "INDEX_FILE"]
+           "occlusion_fraction", "coco_to_collection", "CONVERSION_FILE", "INDEX_FILE", "OCCLUSION_RING_PX"]
 
 INDEX_FILE = "index.parquet"
 CONVERSION_FILE = "coco_conversion.json"  # what was converted from which file, and what was skipped and why
+OCCLUSION_RING_PX = 3
+"""Width (pixels) of the ring just outside an instance's mask in which :func:`occlusion_fraction` looks for other
+objects: annotators leave a pixel or two between touching objects, and polygon rasterisation another."""
 
 
 def rle_counts(counts: str | bytes) -> list[int]:
@@ -134,6 +139,27 @@ class CocoConversion:
     examples: dict[str, list[Any]] = field(default_factory=dict)
 
 
+def occlusion_fraction(mask: np.ndarray, others: np.ndarray, ring_px: int = OCCLUSION_RING_PX) -> float:
+    """The share of an instance's outline that runs along other objects.
+
+    The outline is the ring of pixels within ``ring_px`` (Chebyshev distance) outside ``mask`` and inside the
+    image; the result is the fraction of it covered by ``others`` (the union of the image's other annotations'
+    masks). Where another object touches the instance it may stand in front of it, hiding a part of the animal the
+    mask then lacks (COCO does not say which is in front), so the fraction bounds how much of the outline may be
+    an occlusion boundary rather than the animal's own. 0 for a mask without a ring (it fills the image).
+
+    Args:
+        mask, others: (H, W) bool.
+    """
+    mask, others = np.asarray(mask, dtype=bool), np.asarray(others, dtype=bool)
+    if mask.shape != others.shape or mask.ndim != 2:
+        raise ValueError(f"mask and others must be (H, W) of one shape, got {mask.shape} and {others.shape}")
+    kernel = np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)
+    ring = cv2.dilate(mask.astype(np.uint8), kernel).astype(bool) & ~mask
+    n = int(ring.sum())
+    return float((ring & others).sum() / n) if n else 0.0
+
+
 def _load(path: Path) -> dict:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
@@ -164,7 +190,7 @@ def _category_id(data: dict, category: str | int, path: Path) -> tuple[int, str]
 
 def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike, category: str | int,
                        out: str | os.PathLike, min_area: int = 1024, largest_only: bool = False,
-                       exclude_truncated: bool = False) -> CocoConversion:
+                       exclude_truncated: bool = False, max_occlusion: float | None = None) -> CocoConversion:
     """Write one category of a COCO instances file as a bat3r Parquet-index collection in ``out``.
 
     Args:
@@ -179,6 +205,9 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
         exclude_truncated: skip instances whose mask has a pixel in the image's first or last row or column
             (cut off by the photo's edge). Applied before ``largest_only``, so a photo whose largest animal is cut
             off keeps its largest whole one.
+        max_occlusion: skip instances whose :func:`occlusion_fraction` against every other annotation of their
+            image (any category, crowds included) exceeds this (None: keep them all). Applied before
+            ``largest_only`` too.
 
     Images are not opened or copied: a missing or unreadable photo becomes a ``bad_image`` row when the
     collection is read, like any other. Raises ValueError naming the file and key for a file that is not COCO
@@ -190,6 +219,8 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
     annotations, images, out = Path(annotations), Path(images), Path(out)
     if min_area < 0:
         raise ValueError(f"min_area must be >= 0, got {min_area}")
+    if max_occlusion is not None and not 0.0 <= max_occlusion <= 1.0:
+        raise ValueError(f"max_occlusion must be a fraction in [0, 1], got {max_occlusion}")
     data = _load(annotations)
     cat_id, cat_name = _category_id(data, category, annotations)
     index_path = out / INDEX_FILE
@@ -242,6 +273,9 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
             continue
         kept.setdefault(im["id"], []).append((area, ann_id, mask))
 
+    if max_occlusion is not None:
+        kept = _drop_occluded(kept, data["annotations"], image_rows, max_occlusion, skip)
+
     rows, written = [], set()
     for image_id, instances in kept.items():
         im = image_rows[image_id]
@@ -276,9 +310,46 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
                       for k in ("sample_id", "image_path", "mask_path")})
     report = {"annotations": str(annotations.resolve()), "images": str(images.resolve()),
               "category": cat_name, "category_id": cat_id, "min_area": min_area, "largest_only": largest_only,
-              "exclude_truncated": exclude_truncated,
+              "exclude_truncated": exclude_truncated, "max_occlusion": max_occlusion,
+              "occlusion_ring_px": OCCLUSION_RING_PX,
               "samples": len(rows), "images_with_samples": len(kept),
               "skipped": dict(sorted(skipped.items())), "skipped_examples": examples}
     atomic_write_text(out / CONVERSION_FILE, json.dumps(report, indent=1, default=str))
     atomic_write(index_path, lambda tmp: pq.write_table(table, tmp))
     return CocoConversion(index_path, len(rows), len(kept), dict(skipped), examples)
+
+
+def _drop_occluded(kept: dict[Any, list[tuple[int, Any, np.ndarray]]], annotations: list, image_rows: dict,
+                   max_occlusion: float, skip) -> dict[Any, list[tuple[int, Any, np.ndarray]]]:
+    """``kept`` without the instances whose outline runs along other annotations for more than ``max_occlusion``
+    of it. Every annotation of a kept instance's image counts as an occluder, whatever its category or crowd flag;
+    one whose segmentation does not decode is left out."""
+    by_image: dict[Any, list[tuple[Any, Any]]] = {}
+    for k, ann in enumerate(annotations):
+        if isinstance(ann, dict) and ann.get("image_id") in kept:
+            by_image.setdefault(ann["image_id"], []).append((ann.get("id", f"#{k}"), ann.get("segmentation")))
+    out = {}
+    for image_id, instances in kept.items():
+        im = image_rows[image_id]
+        h, w = int(im["height"]), int(im["width"])
+        own = {ann_id: mask for _, ann_id, mask in instances}
+        count = np.zeros((h, w), np.uint16)  # how many annotations cover each pixel
+        for ann_id, segmentation in by_image[image_id]:
+            if ann_id in own:
+                count += own[ann_id]
+                continue
+            try:
+                count += segmentation_to_mask(segmentation, h, w)
+            except ValueError:
+                continue
+        whole = []
+        for area, ann_id, mask in instances:
+            fraction = occlusion_fraction(mask, (count - mask) > 0)
+            if fraction > max_occlusion:
+                skip(f"runs along another annotated object for more than {max_occlusion:g} of its outline "
+                     "(max_occlusion)", ann_id)
+            else:
+                whole.append((area, ann_id, mask))
+        if whole:
+            out[image_id] = whole
+    return out

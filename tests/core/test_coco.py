@@ -220,3 +220,49 @@ def test_exclude_truncated_skips_instances_cut_off_by_the_photo_edge(tmp_path, c
                      "--out", str(tmp_path / "cli"), "--min-area", "100", "--exclude-truncated"]) == 0
     assert "skipped 2: cut off by the image border (exclude_truncated)" in capsys.readouterr().out
     assert [s.sample_id for s in list_collection(tmp_path / "cli" / "index.parquet")] == ["p-3"]
+
+
+def test_max_occlusion_skips_instances_along_other_objects(tmp_path, capsys):
+    """A ridden horse and a free one: the rider (a person, another category) sits on the ridden horse's back, so
+    60 of the 456 pixels of its 3-pixel outer ring lie in the rider's mask (0.132, by hand: the ring of a 40 x 30
+    rectangle is 46 x 36 - 40 x 30 pixels, the rider covers 3 rows x 20 columns of it); the free horse touches
+    nothing. --max-occlusion 0.1 drops the ridden horse, 0.2 keeps it."""
+    from bat3r_core.predictor.coco import occlusion_fraction
+
+    images = tmp_path / "photos"
+    images.mkdir()
+    _photo(images / "p.jpg", 80, 100, 2)
+    ridden = [[10, 30, 50, 30, 50, 60, 10, 60]]   # columns 10..49, rows 30..59
+    rider = [[20, 10, 40, 10, 40, 30, 20, 30]]    # columns 20..39, rows 10..29: on the ridden horse's back
+    free = [[60, 40, 90, 40, 90, 70, 60, 70]]     # columns 60..89, rows 40..69: 11 columns from the ridden horse
+    data = {"images": [{"id": 1, "file_name": "p.jpg", "height": 80, "width": 100}],
+            "categories": [{"id": 1, "name": "horse"}, {"id": 2, "name": "person"}],
+            "annotations": [{"id": 1, "image_id": 1, "category_id": 1, "iscrowd": 0, "segmentation": ridden},
+                            {"id": 2, "image_id": 1, "category_id": 2, "iscrowd": 0, "segmentation": rider},
+                            {"id": 3, "image_id": 1, "category_id": 1, "iscrowd": 0, "segmentation": free}]}
+    ann = tmp_path / "instances.json"
+    ann.write_text(json.dumps(data))
+    masks = {k: polygons_to_mask(seg, 80, 100) for k, seg in (("ridden", ridden), ("rider", rider), ("free", free))}
+    assert occlusion_fraction(masks["ridden"], masks["rider"] | masks["free"]) == pytest.approx(60 / 456)
+    assert occlusion_fraction(masks["free"], masks["rider"] | masks["ridden"]) == 0.0
+    assert occlusion_fraction(np.ones((4, 4), bool), np.zeros((4, 4), bool)) == 0.0  # no ring: nothing touches
+
+    conv = coco_to_collection(ann, images, "horse", tmp_path / "strict", min_area=100, max_occlusion=0.1)
+    reason = "runs along another annotated object for more than 0.1 of its outline (max_occlusion)"
+    assert conv.samples == 1 and conv.skipped == {reason: 1} and conv.examples == {reason: [1]}
+    assert [s.sample_id for s in list_collection(tmp_path / "strict" / "index.parquet")] == ["p-3"]
+    report = json.loads((tmp_path / "strict" / CONVERSION_FILE).read_text())
+    assert report["max_occlusion"] == 0.1 and report["occlusion_ring_px"] == 3
+    # applied before largest_only: the ridden horse is the larger, yet the photo keeps its free one
+    conv = coco_to_collection(ann, images, "horse", tmp_path / "largest", min_area=100, max_occlusion=0.1,
+                              largest_only=True)
+    assert [s.sample_id for s in list_collection(tmp_path / "largest" / "index.parquet")] == ["p-3"]
+    conv = coco_to_collection(ann, images, "horse", tmp_path / "loose", min_area=100, max_occlusion=0.2)
+    assert conv.samples == 2 and conv.skipped == {}
+    with pytest.raises(ValueError, match="max_occlusion must be a fraction in \\[0, 1\\], got 1.5"):
+        coco_to_collection(ann, images, "horse", tmp_path / "bad", max_occlusion=1.5)
+
+    assert cli_main(["collection", "coco", str(ann), "--images", str(images), "--category", "horse",
+                     "--out", str(tmp_path / "cli"), "--min-area", "100", "--max-occlusion", "0.1"]) == 0
+    assert f"skipped 1: {reason}" in capsys.readouterr().out
+    assert [s.sample_id for s in list_collection(tmp_path / "cli" / "index.parquet")] == ["p-3"]
