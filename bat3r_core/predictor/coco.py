@@ -242,7 +242,9 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
         if len(examples[reason]) < 3:
             examples[reason].append(ann_id)
 
-    kept: dict[Any, list[tuple[int, Any, np.ndarray]]] = {}  # image id -> [(area, annotation id, mask)]
+    # one pass over the annotations without decoding anything, then one image at a time, so memory holds the masks
+    # of one photo, not of the whole category (COCO's horses alone would be ~2 GB of full-size masks)
+    candidates: dict[Any, list[tuple[Any, Any]]] = {}  # image id -> [(annotation id, segmentation)]
     for k, ann in enumerate(data["annotations"]):
         if not isinstance(ann, dict) or ann.get("category_id") != cat_id:
             continue
@@ -254,31 +256,42 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
         if ann.get("iscrowd", 0):
             skip("crowd annotation (iscrowd 1: several animals in one mask)", ann_id)
             continue
+        candidates.setdefault(im["id"], []).append((ann_id, ann.get("segmentation")))
+    occluders: dict[Any, list[tuple[Any, Any]]] = {}  # image id -> every annotation of it, any category
+    if max_occlusion is not None:
+        for k, ann in enumerate(data["annotations"]):
+            if isinstance(ann, dict) and ann.get("image_id") in candidates:
+                occluders.setdefault(ann["image_id"], []).append((ann.get("id", f"#{k}"), ann.get("segmentation")))
+
+    rows, written, images_with_samples = [], set(), 0
+    for image_id, anns in candidates.items():
+        im = image_rows[image_id]
         try:
             h, w = int(im["height"]), int(im["width"])
         except (KeyError, TypeError, ValueError):
-            skip("its image has no integer width and height", ann_id)
+            for ann_id, _ in anns:
+                skip("its image has no integer width and height", ann_id)
             continue
-        try:
-            mask = segmentation_to_mask(ann.get("segmentation"), h, w)
-        except ValueError as e:
-            skip(f"bad segmentation: {e}", ann_id)
+        instances: list[tuple[int, Any, np.ndarray]] = []  # (area, annotation id, mask)
+        for ann_id, segmentation in anns:
+            try:
+                mask = segmentation_to_mask(segmentation, h, w)
+            except ValueError as e:
+                skip(f"bad segmentation: {e}", ann_id)
+                continue
+            area = int(mask.sum())
+            if area < max(min_area, 1):
+                skip(f"smaller than min_area ({min_area} pixels)" if area else "empty mask", ann_id)
+                continue
+            if exclude_truncated and (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
+                skip("cut off by the image border (exclude_truncated)", ann_id)
+                continue
+            instances.append((area, ann_id, mask))
+        if max_occlusion is not None and instances:
+            instances = _drop_occluded(instances, occluders[image_id], h, w, max_occlusion, skip)
+        if not instances:
             continue
-        area = int(mask.sum())
-        if area < max(min_area, 1):
-            skip(f"smaller than min_area ({min_area} pixels)" if area else "empty mask", ann_id)
-            continue
-        if exclude_truncated and (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any()):
-            skip("cut off by the image border (exclude_truncated)", ann_id)
-            continue
-        kept.setdefault(im["id"], []).append((area, ann_id, mask))
-
-    if max_occlusion is not None:
-        kept = _drop_occluded(kept, data["annotations"], image_rows, max_occlusion, skip)
-
-    rows, written = [], set()
-    for image_id, instances in kept.items():
-        im = image_rows[image_id]
+        images_with_samples += 1
         instances.sort(key=lambda t: -t[0])
         if largest_only:
             for _, ann_id, _ in instances[1:]:
@@ -312,44 +325,34 @@ def coco_to_collection(annotations: str | os.PathLike, images: str | os.PathLike
               "category": cat_name, "category_id": cat_id, "min_area": min_area, "largest_only": largest_only,
               "exclude_truncated": exclude_truncated, "max_occlusion": max_occlusion,
               "occlusion_ring_px": OCCLUSION_RING_PX,
-              "samples": len(rows), "images_with_samples": len(kept),
+              "samples": len(rows), "images_with_samples": images_with_samples,
               "skipped": dict(sorted(skipped.items())), "skipped_examples": examples}
     atomic_write_text(out / CONVERSION_FILE, json.dumps(report, indent=1, default=str))
     atomic_write(index_path, lambda tmp: pq.write_table(table, tmp))
-    return CocoConversion(index_path, len(rows), len(kept), dict(skipped), examples)
+    return CocoConversion(index_path, len(rows), images_with_samples, dict(skipped), examples)
 
 
-def _drop_occluded(kept: dict[Any, list[tuple[int, Any, np.ndarray]]], annotations: list, image_rows: dict,
-                   max_occlusion: float, skip) -> dict[Any, list[tuple[int, Any, np.ndarray]]]:
-    """``kept`` without the instances whose outline runs along other annotations for more than ``max_occlusion``
-    of it. Every annotation of a kept instance's image counts as an occluder, whatever its category or crowd flag;
-    one whose segmentation does not decode is left out."""
-    by_image: dict[Any, list[tuple[Any, Any]]] = {}
-    for k, ann in enumerate(annotations):
-        if isinstance(ann, dict) and ann.get("image_id") in kept:
-            by_image.setdefault(ann["image_id"], []).append((ann.get("id", f"#{k}"), ann.get("segmentation")))
-    out = {}
-    for image_id, instances in kept.items():
-        im = image_rows[image_id]
-        h, w = int(im["height"]), int(im["width"])
-        own = {ann_id: mask for _, ann_id, mask in instances}
-        count = np.zeros((h, w), np.uint16)  # how many annotations cover each pixel
-        for ann_id, segmentation in by_image[image_id]:
-            if ann_id in own:
-                count += own[ann_id]
-                continue
-            try:
-                count += segmentation_to_mask(segmentation, h, w)
-            except ValueError:
-                continue
-        whole = []
-        for area, ann_id, mask in instances:
-            fraction = occlusion_fraction(mask, (count - mask) > 0)
-            if fraction > max_occlusion:
-                skip(f"runs along another annotated object for more than {max_occlusion:g} of its outline "
-                     "(max_occlusion)", ann_id)
-            else:
-                whole.append((area, ann_id, mask))
-        if whole:
-            out[image_id] = whole
-    return out
+def _drop_occluded(instances: list[tuple[int, Any, np.ndarray]], annotations: list[tuple[Any, Any]], height: int,
+                   width: int, max_occlusion: float, skip) -> list[tuple[int, Any, np.ndarray]]:
+    """``instances`` (area, annotation id, mask) of one image without those whose outline runs along the image's
+    other ``annotations`` (annotation id, segmentation) for more than ``max_occlusion`` of it. Every annotation
+    counts as an occluder, whatever its category or crowd flag; one whose segmentation does not decode is left
+    out."""
+    own = {ann_id: mask for _, ann_id, mask in instances}
+    count = np.zeros((height, width), np.uint16)  # how many annotations cover each pixel
+    for ann_id, segmentation in annotations:
+        if ann_id in own:
+            count += own[ann_id]
+            continue
+        try:
+            count += segmentation_to_mask(segmentation, height, width)
+        except ValueError:
+            continue
+    whole = []
+    for area, ann_id, mask in instances:
+        if occlusion_fraction(mask, (count - mask) > 0) > max_occlusion:
+            skip(f"runs along another annotated object for more than {max_occlusion:g} of its outline "
+                 "(max_occlusion)", ann_id)
+        else:
+            whole.append((area, ann_id, mask))
+    return whole
