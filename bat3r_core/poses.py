@@ -45,6 +45,17 @@ class RandomPoseConfig:
     discard_quantile: float = 0.75
     include_root: bool = False
 
+    def __post_init__(self) -> None:
+        from .config_utils import ConfigError
+
+        for name in ("sigma1", "sigma2", "beta_a", "beta_b", "max_angle"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ConfigError(f"RandomPoseConfig.{name} must be a number > 0, got {v!r}")
+        q = self.discard_quantile
+        if isinstance(q, bool) or not isinstance(q, (int, float)) or not 0 < q <= 1:
+            raise ConfigError(f"RandomPoseConfig.discard_quantile must be in (0, 1], got {q!r}")
+
 
 def _unit_vectors(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
     v = rng.standard_normal(shape + (3,))

@@ -22,6 +22,7 @@ from bat3r_core.fitting.augment import AugmentConfig
 from bat3r_core.fitting.config import FittingConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.features import FeatureConfig
+from bat3r_core.poses import RandomPoseConfig
 from bat3r_core.predictor.mirror import CanonicalMirror
 from bat3r_core.render.config import RenderConfig, SceneAssets
 from bat3r_core.viewpoints import CameraPriorConfig
@@ -62,7 +63,8 @@ class SampledPlanSpec:
         kind: ``canonical`` or ``random_pose``. n: jobs. seed: their seed. resolution: image side, pixels.
         shard_size: jobs per render shard. body_frame: the catalog's body-frame joints
         (``{origin, forward, horizontal}``). prior: the category's camera prior. num_textures / num_envmaps: ids
-        are drawn from ``[0, num)`` (0 environment maps: the procedural sky).
+        are drawn from ``[0, num)`` (0 environment maps: the procedural sky). random_poses: the random-pose
+        sampler's settings (``random_pose`` only).
     """
 
     kind: Literal["canonical", "random_pose"]
@@ -74,6 +76,7 @@ class SampledPlanSpec:
     prior: CameraPriorConfig = field(default_factory=CameraPriorConfig)
     num_textures: int = 1
     num_envmaps: int = 0
+    random_poses: RandomPoseConfig = field(default_factory=RandomPoseConfig)
 
     def __post_init__(self) -> None:
         if self.kind not in ("canonical", "random_pose"):

@@ -6,8 +6,10 @@ JSON written to ``manifest.json``. ``stage_specs`` cuts it into the typed spec o
 exactly the stages it reaches.
 
 Overrides are ``{"<section>.<key>[.<key>...]": value}`` with sections ``render``, ``model``, ``train``,
-``features``, ``fitting``, ``camera_prior``, ``pseudo_label_filter`` (stage configs) and ``run`` (fields of the run preset, e.g.
-``run.canonical_samples``), plus the top-level ``shard_size`` and ``max_failed_fraction``.
+``features``, ``fitting``, ``camera_prior``, ``pseudo_label_filter`` (stage configs), ``random_poses`` (the
+random-poses baseline's sampler, ``bat3r_core.poses.RandomPoseConfig``; the supplement's by default) and ``run``
+(fields of the run preset, e.g. ``run.canonical_samples``), plus the top-level ``shard_size`` and
+``max_failed_fraction``.
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ from bat3r_core.catalog import Catalog, default_catalog_path, load_catalog
 from bat3r_core.config_utils import ConfigError, replace_path, to_mapping
 from bat3r_core.fitting.augment import AugmentConfig
 from bat3r_core.fitting.config import FittingConfig
+from bat3r_core.poses import RandomPoseConfig
 from bat3r_core.predictor.config import ModelConfig, TrainConfig
 from bat3r_core.predictor.features import FeatureConfig
 from bat3r_core.predictor.mirror import CanonicalMirror, canonical_mirror_for_rig
@@ -33,7 +36,8 @@ from bat3r_core.viewpoints import AnglePrior, CameraPriorConfig, ViewTypePrior
 
 __all__ = ["Ablations", "RunSettings", "StageSpecs", "resolve_run", "stage_specs", "recorded_run"]
 
-_SECTIONS = ("render", "model", "train", "features", "fitting", "camera_prior", "pseudo_label_filter", "run")
+_SECTIONS = ("render", "model", "train", "features", "fitting", "camera_prior", "pseudo_label_filter", "random_poses",
+             "run")
 
 
 @dataclass(frozen=True)
@@ -94,6 +98,8 @@ class RunSettings:
     source_asset: str = ""
     mirror: CanonicalMirror | None = None
     """The rig's sagittal plane when ``train.mirror_probability > 0`` (checked symmetric at resolve time)."""
+    random_poses: RandomPoseConfig = RandomPoseConfig()
+    """The random-poses baseline's pose sampler (``--random-poses``; ``--set random_poses.sigma1=…``)."""
 
     def hint_context(self) -> dict[str, str]:
         """What ``bat3r_core.runs.require_samples`` fills into its hint: the category, its asset file (none for the
@@ -201,7 +207,8 @@ def resolve_run(category: str, preset: str, run_name: str, overrides: Mapping[st
     features = dataclasses.replace(features, cache_dir=str(
         Path(features.cache_dir or catalog.storage() / "_cache" / "features") / category))
     configs = {"render": render, "model": model, "train": train, "features": features, "fitting": fitting,
-               "camera_prior": prior, "pseudo_label_filter": catalog.pseudo_label_filter_config(run)}
+               "camera_prior": prior, "pseudo_label_filter": catalog.pseudo_label_filter_config(run),
+               "random_poses": RandomPoseConfig()}
     for section in configs:
         for key, value in ov[section].items():
             configs[section] = replace_path(configs[section], key, value)
@@ -286,7 +293,8 @@ def stage_specs(settings: RunSettings, seed: int) -> StageSpecs:
         plan=SampledPlanSpec(kind="random_pose" if settings.ablations.random_poses else "canonical",
                              n=settings.canonical_samples, seed=seed, resolution=settings.image_size,
                              shard_size=settings.shard_size, body_frame=dict(settings.body_frame), prior=prior,
-                             num_textures=settings.assets.num_textures, num_envmaps=len(settings.assets.envmaps)),
+                             num_textures=settings.assets.num_textures, num_envmaps=len(settings.assets.envmaps),
+                             random_poses=settings.random_poses),
         render=RenderSpec(render=settings.render, assets=settings.assets),
         features=settings.features,
         train=TrainSpec(model=settings.model, train=settings.train, features=settings.features,

@@ -31,9 +31,10 @@ def plan_sampled_jobs(asset: str, out_dir: str, config: SampledPlanSpec | Mappin
     """
     spec = as_spec(SampledPlanSpec, config, "plan config")
     shard_size = spec.shard_size
+    extra = {"pose_config": spec.random_poses} if spec.kind == "random_pose" else {}
     jobs = _BUILDERS[spec.kind](load_rig(asset), spec.n, spec.seed, dict(spec.body_frame), spec.prior,
                                 resolution=spec.resolution, num_textures=spec.num_textures,
-                                num_envmaps=spec.num_envmaps, prefix=spec.kind)
+                                num_envmaps=spec.num_envmaps, prefix=spec.kind, **extra)
     files = [write_jobs(jobs[s:s + shard_size], Path(out_dir) / f"{shards.shard_name(i)}.parquet")
              for i, s in enumerate(range(0, len(jobs), shard_size))]
     return {"stage": "plan", "files": [str(f) for f in files], "content_hash": shards.content_hash(files),

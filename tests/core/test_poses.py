@@ -33,6 +33,18 @@ def test_random_pose_sampler_follows_the_definition(toy_rig):
     assert np.mean(sigma) < np.mean(raw_sigma)
 
 
+def test_random_pose_config_refuses_what_the_sampler_cannot_draw():
+    from bat3r_core.config_utils import ConfigError
+
+    for bad, match in (({"sigma1": 0.0}, "sigma1 must be a number > 0"), ({"sigma2": -1}, "sigma2"),
+                       ({"beta_a": "1"}, "beta_a"), ({"max_angle": True}, "max_angle"),
+                       ({"discard_quantile": 0.0}, "discard_quantile must be in \\(0, 1\\]"),
+                       ({"discard_quantile": 1.5}, "discard_quantile")):
+        with pytest.raises(ConfigError, match=match):
+            RandomPoseConfig(**bad)
+    RandomPoseConfig(sigma1=0.66, sigma2=0.5)  # σ = σ1 + t (σ2 − σ1) interpolates either way
+
+
 def test_random_pose_quartile_filter_exact(toy_rig):
     """The kept poses are exactly the first n candidates at or below the q-quantile of mean angular deviation.
 

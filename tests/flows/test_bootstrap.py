@@ -295,20 +295,26 @@ def test_canonical_replay_trains_on_iteration_zero_renders_too(first_run, catalo
 
 def test_random_poses_baseline_from_a_given_phi0_trains_it_on(first_run, catalog):
     """random_poses with init_predictor: the random-poses baseline as an arm from another run's Φ₀ — iteration 0
-    renders random poses and trains that Φ₀ on (a warm start), instead of only evaluating it."""
+    renders random poses and trains that Φ₀ on (a warm start), instead of only evaluating it. The sampler's
+    settings are overrides (``random_poses.*``): here σ = 0.66 rad, joints bent ~28° on average instead of the
+    supplement's ~7°."""
     import torch
 
+    from bat3r_core.poses import mean_joint_angle_deg
     from flows.bootstrap import bootstrap
 
     base = RunLayout(catalog / "runs", "toy", "t1")
     phi0 = base.stage_dir(0, "train") / "predictor.pt"
     result = bootstrap(category="toy", preset="tiny", iterations=0, run_name="rp-warm", random_poses=True,
-                       overrides={**TINY, "train.steps": 3}, init_predictor=str(phi0))
+                       overrides={**TINY, "train.steps": 3, "random_poses.sigma1": 0.66, "random_poses.sigma2": 0.66},
+                       init_predictor=str(phi0))
     layout = RunLayout(catalog / "runs", "toy", "rp-warm")
     it = result["iterations"][0]
     assert it["predictor"] == str(layout.stage_dir(0, "train") / "predictor.pt") != str(phi0)
     table = shards.read_table(layout.stage_dir(0, "render"))
     assert set(table.column("view_kind").to_pylist()) == {"random_pose"}
+    bends = mean_joint_angle_deg(shards.read_table(layout.stage_dir(0, "plan")).column("excess_rotations").to_pylist())
+    assert 20.0 < bends < 36.0, bends  # the supplement's sampler: ~7°
     mine, theirs = (torch.load(p, map_location="cpu", weights_only=True) for p in (it["predictor"], phi0))
     # 3 steps from Φ₀'s weights: close to them, not equal (a model trained from scratch would be nowhere near)
     key = next(k for k, v in theirs["model"].items() if v.dtype.is_floating_point and v.numel() > 100)
