@@ -31,6 +31,7 @@ __all__ = [
     "SplitIndices",
     "CameraHistograms",
     "PoseErrors",
+    "bone_direction_error_deg",
     "PseudoLabelSummary",
     "standardize",
     "cluster_poses",
@@ -338,6 +339,30 @@ def pose_errors(fitted_joints: np.ndarray, gt_joints: np.ndarray, fitted_verts: 
     return PoseErrors(joint, vert, ang)
 
 
+def bone_direction_error_deg(fitted_joints: np.ndarray, gt_joints: np.ndarray, parents: np.ndarray,
+                             rest_joints: np.ndarray) -> np.ndarray:
+    """Mean angle (degrees) between the fitted and the true bones of N samples.
+
+    A bone is the vector from a joint's parent to the joint; bones shorter than 1e-3 of the longest in the rest
+    pose (``rest_joints`` (J, 3)) have no direction and are left out. Twist about a bone leaves its direction, and
+    almost the whole surface, unchanged: this error counts the swing of the joints, which point maps show, where
+    the excess-rotation error (:func:`pose_errors`) also counts twist, which they do not.
+
+    fitted_joints, gt_joints: (N, J, 3) joint positions, metres, one common frame. parents: (J,), -1 for the root.
+    """
+    fj, gj = _joint_like("joints", fitted_joints, gt_joints)
+    parents = np.asarray(parents, dtype=np.int64)
+    child = np.flatnonzero(parents >= 0)
+    rest = np.asarray(rest_joints, dtype=np.float64)
+    length = np.linalg.norm(rest[child] - rest[parents[child]], axis=-1)
+    child = child[length > 1e-3 * length.max()] if len(child) else child
+    if not len(child):
+        return np.full(len(fj), math.nan)
+    a, b = fj[:, child] - fj[:, parents[child]], gj[:, child] - gj[:, parents[child]]
+    cos = (a * b).sum(-1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-300)
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).mean(-1)
+
+
 def _joint_like(name: str, a, b) -> tuple[np.ndarray, np.ndarray]:
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
@@ -352,8 +377,9 @@ class PseudoLabelSummary:
 
     n: fit rows; n_ok: rows with status "ok". status_counts: {status: count} over all rows; reason_counts:
     {reason: count} over non-ok rows (most frequent first). losses: {loss column: (n_ok,) finite values of the ok
-    rows}. mean_joint_err_cm, mean_vertex_err_cm, mean_angle_err_deg: means over ok rows with finite values of the
-    ``joint_err_cm``, ``vertex_err_cm`` and ``angle_err_deg`` columns (NaN when absent: no ground truth).
+    rows}. mean_joint_err_cm, mean_vertex_err_cm, mean_angle_err_deg, mean_bone_err_deg: means over ok rows with
+    finite values of the ``joint_err_cm``, ``vertex_err_cm``, ``angle_err_deg`` and ``bone_err_deg`` columns (NaN
+    when absent: no ground truth, or a run written before the column existed).
     """
 
     n: int
@@ -364,14 +390,16 @@ class PseudoLabelSummary:
     mean_joint_err_cm: float = math.nan
     mean_vertex_err_cm: float = math.nan
     mean_angle_err_deg: float = math.nan
+    mean_bone_err_deg: float = math.nan
 
 
-POSE_ERROR_COLUMNS = ("joint_err_cm", "vertex_err_cm", "angle_err_deg")
+POSE_ERROR_COLUMNS = ("joint_err_cm", "vertex_err_cm", "angle_err_deg", "bone_err_deg")
 
 
 def summarize_pseudo_labels(fits: pa.Table | Sequence[Mapping[str, Any]]) -> PseudoLabelSummary:
     """Summarise fit rows (``iter-NN/fit`` shards): ``sample_id``, ``status``, ``reason``, any ``loss_*`` float
-    columns (final fitting losses), and optionally ``joint_err_cm``, ``vertex_err_cm``, ``angle_err_deg``."""
+    columns (final fitting losses), and optionally ``joint_err_cm``, ``vertex_err_cm``, ``angle_err_deg``,
+    ``bone_err_deg``."""
     table = fits if isinstance(fits, pa.Table) else pa.Table.from_pylist(list(fits))
     if table.num_rows and "status" not in table.column_names:
         raise ValueError(f"fit rows need a 'status' column; got {table.column_names}")
@@ -398,4 +426,5 @@ def summarize_pseudo_labels(fits: pa.Table | Sequence[Mapping[str, Any]]) -> Pse
         v = finite(c) if c in table.column_names else np.array([])
         means[c] = float(v.mean()) if len(v) else math.nan
     return PseudoLabelSummary(len(status), int(ok.sum()), status_counts, reason_counts, losses,
-                              means["joint_err_cm"], means["vertex_err_cm"], means["angle_err_deg"])
+                              means["joint_err_cm"], means["vertex_err_cm"], means["angle_err_deg"],
+                              means["bone_err_deg"])

@@ -325,15 +325,16 @@ def pseudo_label_errors(fit_rows: Sequence[Mapping[str, Any]], ground_truth: Map
 
     The pose alone is compared: the rig is posed by the fitted and the true θ (unit bone scales, no global
     similarity), the fitted mesh is rigidly aligned onto the true one (Kabsch over all vertices), and the mean
-    vertex and joint distances (cm) and the mean rotation difference over the joints (degrees; the root counts as
-    0, its rotation being a global orientation) are reported.
+    vertex and joint distances (cm), the mean rotation difference over the joints (degrees; the root counts as
+    0, its rotation being a global orientation) and the mean angle between the fitted and the true bones (degrees,
+    ``analysis.bone_direction_error_deg``: the swing alone, blind to the twist no point map shows) are reported.
     Fits whose status is not ``ok`` or that have no ground truth are left out.
 
-    Returns rows ``sample_id, joint_err_cm, vertex_err_cm, angle_err_deg``.
+    Returns rows ``sample_id, joint_err_cm, vertex_err_cm, angle_err_deg, bone_err_deg``.
     """
     import torch
 
-    from bat3r_core.analysis import pose_errors
+    from bat3r_core.analysis import bone_direction_error_deg, pose_errors
     from bat3r_core.metrics import kabsch
     from bat3r_core.skinning import skin
 
@@ -354,8 +355,10 @@ def pseudo_label_errors(fit_rows: Sequence[Mapping[str, Any]], ground_truth: Map
     f_local[:, root] = 0.0
     t_local[:, root] = 0.0
     errors = pose_errors(fj, tj, fv, tv, f_local, t_local)
+    bones = bone_direction_error_deg(fj, tj, rig.parents, rig.rest_joint_positions)
     return [{"sample_id": r["sample_id"], "joint_err_cm": float(errors.joint_err_cm[i]),
-             "vertex_err_cm": float(errors.vertex_err_cm[i]), "angle_err_deg": float(errors.angle_err_deg[i])}
+             "vertex_err_cm": float(errors.vertex_err_cm[i]), "angle_err_deg": float(errors.angle_err_deg[i]),
+             "bone_err_deg": float(bones[i])}
             for i, r in enumerate(keep)]
 
 
@@ -363,10 +366,10 @@ def write_pseudo_label_errors(fit_dir: str | os.PathLike, ground_truth: Mapping[
                               out_dir: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
     """:func:`pseudo_label_errors` of every fit shard of ``fit_dir`` → ``out_dir/pseudo_labels.parquet``.
 
-    Returns the file and a summary ``{"n", "joint_err_cm", "vertex_err_cm", "angle_err_deg"}`` (means over the
-    rows; None without rows)."""
+    Returns the file and a summary ``{"n", "joint_err_cm", "vertex_err_cm", "angle_err_deg", "bone_err_deg"}``
+    (means over the rows; None without rows)."""
     rows = pseudo_label_errors(shards.read_table(fit_dir).to_pylist(), ground_truth, rig)
-    columns = ("joint_err_cm", "vertex_err_cm", "angle_err_deg")
+    columns = ("joint_err_cm", "vertex_err_cm", "angle_err_deg", "bone_err_deg")
     schema = pa.schema([("sample_id", pa.string())] + [(c, pa.float64()) for c in columns])
     table = pa.Table.from_pylist(rows, schema=schema)
     path = atomic_write(Path(out_dir) / PSEUDO_LABEL_FILE, lambda tmp: pq.write_table(table, tmp))

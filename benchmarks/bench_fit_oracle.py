@@ -12,7 +12,12 @@ crop of the image) with ``bat3r_core.pointmaps.dual_point_maps``. It reports
   with Q replaced by Q*, with both replaced, next to the rest pose (no fitting at all);
 * how far each version's fits articulate the rig (``fit_joint_angle_deg_<version>``, the mean rotation of the
   non-root joints) next to the true poses (``truth_joint_angle_deg``): fits that barely leave the rest pose can beat
-  it without showing the poses the photos show.
+  it without showing the poses the photos show. The bone direction error tells them apart
+  (``median_fit_bone_err_deg_<version>``, ``pct_bones_better_than_rest_<version>``, against
+  ``median_rest_pose_bone_err_deg``; ``bat3r_core.analysis.bone_direction_error_deg``): a near-rest fit's is
+  the rest pose's, only a fit that bends the right joints the right way lowers it. It compares bone directions,
+  not the joints' rotations, because a rotation about a limb's own axis (twist) barely moves the surface: no
+  point map shows it, yet it dominates a per-joint rotation error.
 
 Only points whose pixel and layer are occupied in the truth take part, in every version, so the four fits see
 the same points. A fit is only worth rendering when it beats the rest pose; the table says which map has to
@@ -146,13 +151,19 @@ def pose_errors(rows: list[dict], gt: dict, rig) -> tuple[list[dict], list[dict]
 def pose_quality(rows: list[dict], gt: dict, rig, errors: tuple[list[dict], list[dict]] | None = None
                  ) -> dict[str, float]:
     """Mean and median vertex error (cm) of the fitted poses and of the rest pose, and how often the fit beats the
-    rest pose. ``errors``: ``pose_errors(rows, gt, rig)`` when already computed."""
+    rest pose; the same for the bone direction error (degrees, ``bone_err_deg``), which a fit that barely leaves
+    the rest pose cannot lower much. ``errors``: ``pose_errors(rows, gt, rig)`` when already
+    computed."""
     fitted, rest = errors if errors is not None else pose_errors(rows, gt, rig)
     f = np.array([e["vertex_err_cm"] for e in fitted])
     n = np.array([e["vertex_err_cm"] for e in rest])
+    fb = np.array([e["bone_err_deg"] for e in fitted])
+    nb = np.array([e["bone_err_deg"] for e in rest])
     return {"fitted": len(fitted), "vertex_err_cm": float(f.mean()), "rest_pose_vertex_err_cm": float(n.mean()),
             "median_vertex_err_cm": float(np.median(f)), "median_rest_pose_vertex_err_cm": float(np.median(n)),
-            "pct_better_than_rest": float(100 * np.mean(f < n))}
+            "pct_better_than_rest": float(100 * np.mean(f < n)),
+            "median_bone_err_deg": float(np.median(fb)), "median_rest_pose_bone_err_deg": float(np.median(nb)),
+            "pct_bones_better_than_rest": float(100 * np.mean(fb < nb))}
 
 
 def refit_quality(rows: list[dict], instances: list[PointCloudInstance], rig, masks: dict | None = None
@@ -322,13 +333,18 @@ def main(argv: list[str] | None = None) -> dict:
         ok = [r["excess_rotations"] for r in rows if r["status"] == "ok"]
         if ok:  # how far the fits articulate the rig: near-rest fits can beat the rest pose by barely leaving it
             figures[f"fit_joint_angle_deg_{name}"] = round(mean_joint_angle_deg(ok), 1)
+        figures[f"median_fit_bone_err_deg_{name}"] = round(quality["median_bone_err_deg"], 2)
+        figures[f"pct_bones_better_than_rest_{name}"] = round(quality["pct_bones_better_than_rest"], 1)
+        figures["median_rest_pose_bone_err_deg"] = round(quality["median_rest_pose_bone_err_deg"], 2)
         figures["rest_pose_vertex_err_cm"] = round(quality["rest_pose_vertex_err_cm"], 2)
         figures["median_rest_pose_vertex_err_cm"] = round(quality["median_rest_pose_vertex_err_cm"], 2)
         print(f"{name:>13}: fits {quality['vertex_err_cm']:.2f} cm from the truth (rest pose "
               f"{quality['rest_pose_vertex_err_cm']:.2f} cm), better than the rest pose for "
               f"{quality['pct_better_than_rest']:.0f}% of {quality['fitted']} images; mean joint angle "
               f"{figures.get(f'fit_joint_angle_deg_{name}', float('nan')):.1f}° (truth "
-              f"{figures['truth_joint_angle_deg']:.1f}°)"
+              f"{figures['truth_joint_angle_deg']:.1f}°); bone direction error {quality['median_bone_err_deg']:.1f}° "
+              f"(median; rest pose {quality['median_rest_pose_bone_err_deg']:.1f}°, beaten by "
+              f"{quality['pct_bones_better_than_rest']:.0f}%)"
               + (f"; the run's filter keeps them with precision {figures[f'refit_filter_precision_{name}']:.2f}"
                  if f"refit_filter_precision_{name}" in figures else ""), flush=True)
         quarters = {k[len("rank_precision_q0.25_"):]: v for k, v in ranked_refit.items()
@@ -354,6 +370,10 @@ def main(argv: list[str] | None = None) -> dict:
                         f"{figures['median_rest_pose_vertex_err_cm']:.2f} cm ("
                         + ("below: met" if figures["median_fit_vertex_err_cm_predicted"]
                            < figures["median_rest_pose_vertex_err_cm"] else "NOT below") + ")")
+    if "median_fit_bone_err_deg_predicted" in figures:  # the articulation: near-rest fits cannot lower it
+        verdicts.append(f"median bone direction error {figures['median_fit_bone_err_deg_predicted']:.2f}° vs rest "
+                        f"pose {figures['median_rest_pose_bone_err_deg']:.2f}° (beaten by "
+                        f"{figures['pct_bones_better_than_rest_predicted']:.0f}% of the fits)")
     # with a changed fitting setting the run's own filter judged other fits: judge the refits instead
     which = ("refit_filter_", "_predicted") if fitting_changes else ("filter_", "")
     precision = figures.get(f"{which[0]}precision{which[1]}")

@@ -18,6 +18,11 @@ variant's test mCD at the benchmark's last iteration, or at ``--iteration``, min
 variant beats the control) and ``gap_recovered_<label>`` (the share of the control → oracle gap it closes there).
 A random-poses baseline trained on from the same Φ₀ (``--random-poses --init-predictor``, iterations 0) is one
 training round from Φ₀: its figures count as iteration 1.
+
+With ``--truth`` each iteration's ok fits are also scored against the hidden poses by bone direction
+(``median_fit_bone_err_deg_<label>_iter<i>``, ``pct_bones_better_than_rest_<label>_iter<i>``, next to
+``median_rest_pose_bone_err_deg_<label>_iter<i>``; ``evaluation_truth.pseudo_label_errors``): whether the poses
+the loop rendered bend the right bones the right way, which the vertex error of a near-rest fit does not say.
 """
 from __future__ import annotations
 
@@ -50,8 +55,9 @@ def _run_spec(text: str) -> tuple[str, str]:
     return name, label.replace("-", "_")
 
 
-def run_figures(run_dir: Path, label: str) -> dict[str, float]:
-    """Test metrics and pseudo-label checks of one bootstrap run folder, keyed by ``label``."""
+def run_figures(run_dir: Path, label: str, truth: dict | None = None, rig=None) -> dict[str, float]:
+    """Test metrics and pseudo-label checks of one bootstrap run folder, keyed by ``label``; with the collection's
+    ``truth`` (``evaluation_truth.load_ground_truth``) and the run's ``rig``, the fits' bone direction errors."""
     import pyarrow.parquet as pq
 
     metrics = run_dir / "metrics.parquet"
@@ -85,10 +91,37 @@ def run_figures(run_dir: Path, label: str) -> dict[str, float]:
         angle = fit_joint_angle_deg(fit)
         if angle is not None:
             figures[f"fit_joint_angle_deg_{label}_iter{int(fit.parent.name.split('-')[1])}"] = round(angle, 1)
+    if truth is not None and rig is not None:
+        figures.update(bone_figures(run_dir, label, truth, rig))
     if shift:  # the random poses it trained on, in place of fits
         angle = fit_joint_angle_deg(run_dir / "iter-00" / "plan")
         if angle is not None:
             figures[f"fit_joint_angle_deg_{label}_iter1"] = round(angle, 1)
+    return figures
+
+
+def bone_figures(run_dir: Path, label: str, truth: dict, rig) -> dict[str, float]:
+    """Median bone direction error (degrees) of each iteration's ok fits with a true pose, of the rest pose for
+    the same images, and the share of fits that beat the rest pose by it."""
+    import pyarrow.parquet as pq
+
+    from bat3r_core import shards
+    from bat3r_core.evaluation_truth import pseudo_label_errors
+    from bat3r_core.pseudo_labels import rest_pose_errors
+
+    figures: dict[str, float] = {}
+    for fit in sorted(run_dir.glob("iter-*/fit")):
+        i = int(fit.parent.name.split("-")[1])
+        rows = [r for part in sorted(fit.glob("part-*.parquet"))
+                for r in pq.read_table(part, columns=["sample_id", "status", "excess_rotations"]).to_pylist()
+                if r["status"] == shards.STATUS_OK and r["sample_id"] in truth]
+        if not rows:
+            continue
+        fitted = np.array([e["bone_err_deg"] for e in pseudo_label_errors(rows, truth, rig)])
+        rest = np.array([e["bone_err_deg"] for e in rest_pose_errors(rows, truth, rig)])
+        figures[f"median_fit_bone_err_deg_{label}_iter{i}"] = round(float(np.median(fitted)), 2)
+        figures[f"median_rest_pose_bone_err_deg_{label}_iter{i}"] = round(float(np.median(rest)), 2)
+        figures[f"pct_bones_better_than_rest_{label}_iter{i}"] = round(float(100 * np.mean(fitted < rest)), 1)
     return figures
 
 
@@ -133,7 +166,8 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
                    help="where runs live (default: the data catalog's storage root)")
     p.add_argument("--truth", type=Path, default=None, metavar="GROUND_TRUTH_NPZ",
                    help="the collection's hidden ground truth (a generated collection's ground_truth.npz): adds "
-                        "truth_joint_angle_deg, how far the true poses articulate the rig, next to the fits'")
+                        "truth_joint_angle_deg, how far the true poses articulate the rig, next to the fits', "
+                        "and the fits' bone direction errors against it")
     p.add_argument("--record-as", type=record_name, required=True, help="name of the results/<name>.json to write")
     p.add_argument("--results-dir", type=Path, default=None,
                    help="write the json there and leave RESULTS.md alone (default: benchmarks/results)")
@@ -160,14 +194,22 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
 
         args.storage_root = load_catalog(None, validate_stages=False).storage()
     lines = []
+    truth = rig = None
     if args.truth is not None:
         from bat3r_core.evaluation_truth import load_ground_truth
+        from bat3r_core.rig_io import load_rig
 
         truth = load_ground_truth(args.truth)
         poses = [t["excess_rotations"] for t in truth.values()]
         figures["truth_joint_angle_deg"] = round(mean_joint_angle_deg(poses), 1)
+        config = read_manifest(RunLayout(args.storage_root, args.category, args.runs[0][0])).get("config", {})
+        asset = config.get("assets", {}).get("asset")
+        if asset:
+            rig = load_rig(asset)
+        else:
+            lines.append(f"no bone direction errors: run {args.runs[0][0]!r} records no asset in its manifest")
     for name, label in args.runs:
-        got = run_figures(Path(args.storage_root) / args.category / name, label)
+        got = run_figures(Path(args.storage_root) / args.category / name, label, truth, rig)
         figures.update(got)
         final = got.get(f"mcd_{label}_iter{last}")
         if final is not None:

@@ -9,8 +9,8 @@
 * the ``split == "collection"`` rows of ``metrics.parquet`` (mask IoUs without 3D ground truth,
   ``bat3r_core.evaluation_masks``; computed from ``iter-NN/evaluate/collection`` when the file lacks them).
 * ``iter-NN/fit/part-*.parquet``: fit rows with ``sample_id, status, reason``, final losses as ``loss_*`` float
-  columns, optionally ``joint_err_cm, vertex_err_cm, angle_err_deg`` (pose errors where ground truth exists, see
-  ``bat3r_core.analysis.pose_errors``) and the estimated body-centric camera ``azimuth_deg, elevation_deg,
+  columns, optionally ``joint_err_cm, vertex_err_cm, angle_err_deg, bone_err_deg`` (pose errors where ground truth
+  exists, see ``bat3r_core.analysis.pose_errors`` and ``bone_direction_error_deg``) and the estimated body-centric camera ``azimuth_deg, elevation_deg,
   roll_deg``.
 * ``iter-NN/evaluate/qualitative.npz`` (``QUALITATIVE_FILE``, written by ``write_report_inputs``): S samples with
   ``sample_id (S,) str``, ``image (S, H, W, 3) uint8``, ``intrinsics (S, 3, 3) float32`` (pixels of ``image``),

@@ -12,7 +12,7 @@ from typing import Callable, Sequence
 import numpy as np
 import pyarrow as pa
 
-from bat3r_core import evaluation, evaluation_masks, evaluation_truth, shards, stages
+from bat3r_core import analysis, evaluation, evaluation_masks, evaluation_truth, shards, stages
 from bat3r_core.report.inputs import QUALITATIVE_FILE
 
 FIT_STAGE = stages.stage(stages.FIT).folder
@@ -112,13 +112,13 @@ def _load(run_dir: Path) -> _RunData:
 
 
 def join_pose_errors(fits: pa.Table, path: Path) -> pa.Table:
-    """Fit rows with the ``joint_err_cm, vertex_err_cm, angle_err_deg`` of ``pseudo_labels.parquet`` (NaN where a fit
-    has none)."""
+    """Fit rows with the ``joint_err_cm, vertex_err_cm, angle_err_deg, bone_err_deg`` of ``pseudo_labels.parquet``
+    (NaN where a fit has none, or the file predates the column)."""
     import pyarrow.parquet as pq
 
     errs = {r["sample_id"]: r for r in pq.read_table(path).to_pylist()}
     ids = fits.column("sample_id").to_pylist()
-    for col in ("joint_err_cm", "vertex_err_cm", "angle_err_deg"):
+    for col in analysis.POSE_ERROR_COLUMNS:
         values = pa.array([errs.get(i, {}).get(col, math.nan) for i in ids], pa.float64())
         fits = fits.set_column(fits.column_names.index(col), col, values) if col in fits.column_names \
             else fits.append_column(col, values)

@@ -336,9 +336,9 @@ def _section_pseudo_labels(d: _RunData) -> str:
     summaries = {it: analysis.summarize_pseudo_labels(t) for it, t in sorted(d.fits.items())}
     statuses = sorted({s for m in summaries.values() for s in m.status_counts})
     rows = [[it, m.n, m.n_ok, *[m.status_counts.get(s, 0) for s in statuses if s != "ok"], m.mean_joint_err_cm,
-             m.mean_vertex_err_cm, m.mean_angle_err_deg] for it, m in summaries.items()]
+             m.mean_vertex_err_cm, m.mean_angle_err_deg, m.mean_bone_err_deg] for it, m in summaries.items()]
     header = ["iteration", "fits", "kept (ok)", *[f"{s}" for s in statuses if s != "ok"],
-              "joint err (cm)", "vertex err (cm)", "angle err (°)"]
+              "joint err (cm)", "vertex err (cm)", "angle err (°)", "bone direction err (°)"]
     parts = [_table(header, rows, "num")]
     loss_names = sorted({k for m in summaries.values() for k in m.losses})
     if loss_names:

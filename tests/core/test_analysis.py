@@ -161,6 +161,26 @@ def test_pose_errors_against_loop_reference():
         A.pose_errors(fit_j, gt_j, fit_v[:, :3], gt_v, fit_r, gt_r)
 
 
+def test_bone_direction_error_against_loop_reference():
+    """Per bone (parent -> child joint) the angle between the fitted and the true vector, averaged over the bones
+    that have a length; bones that are points (a joint on its parent) are left out."""
+    rng = np.random.default_rng(4)
+    parents = np.array([-1, 0, 1, 1, 3, 4])
+    rest = rng.normal(size=(6, 3))
+    rest[5] = rest[4]  # a zero-length bone: no direction
+    gt, fit = rng.normal(size=(3, 6, 3)), rng.normal(size=(3, 6, 3))
+    out = A.bone_direction_error_deg(fit, gt, parents, rest)
+    for i in range(3):
+        angles = []
+        for j in (1, 2, 3, 4):
+            a, b = fit[i, j] - fit[i, parents[j]], gt[i, j] - gt[i, parents[j]]
+            angles.append(math.degrees(math.acos(np.dot(a, b) / np.linalg.norm(a) / np.linalg.norm(b))))
+        assert out[i] == pytest.approx(np.mean(angles), rel=1e-9)
+    assert np.allclose(A.bone_direction_error_deg(gt, gt, parents, rest), 0.0, atol=1e-5)
+    # the same bones shifted and scaled: no direction changes
+    assert np.allclose(A.bone_direction_error_deg(2.0 * gt + 1.0, gt, parents, rest), 0.0, atol=1e-5)
+
+
 def test_summarize_pseudo_labels_counts_and_means():
     rows = pa.table({
         "sample_id": ["a", "b", "c", "d", "e"],

@@ -93,6 +93,42 @@ def test_a_random_poses_arm_from_phi0_counts_as_one_round(tmp_path):
     assert figures["mcd_rp_scratch_iter0"] == 10.2 and "gap_to_control_cm_rp_scratch" not in figures
 
 
+def test_the_fits_bone_directions_against_the_hidden_poses(tmp_path, toy_rig):
+    """With --truth and a run whose manifest names its asset, each iteration's ok fits are scored by bone direction
+    against the true poses and next to the rest pose: an exact fit scores 0 and beats it, a rest-pose fit ties it
+    (not counted as beating it)."""
+    from bat3r_core.evaluation_truth import pseudo_label_errors
+    from bat3r_core.poses import sample_toy_natural_poses
+    from bat3r_core.rig_io import save_rig_glb
+
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "fid.json").write_text(json.dumps({"mcd_control_iter1": 10.5, "mcd_oracle_iter1": 10.0}))
+    asset = save_rig_glb(toy_rig, tmp_path / "toy.glb")
+    run = _fake_run(tmp_path / "runs", "loop", [10.9, 10.4])
+    (run / "manifest.json").write_text(json.dumps({"config": {"assets": {"asset": str(asset)}}}))
+    theta, _ = sample_toy_natural_poses(2, seed=3, families=("gallop",))
+    truth = tmp_path / "ground_truth.npz"
+    keys = ("global_scale", "global_rotation", "global_translation", "camera_rotation", "camera_translation", "K",
+            "posed_vertices")
+    np.savez(truth, sample_id=np.array(["a", "b"]), excess_rotations=theta, **{k: np.zeros(2) for k in keys})
+    rows = [{"sample_id": "a", "status": "ok", "excess_rotations": theta[0].ravel().tolist()},
+            {"sample_id": "b", "status": "ok", "excess_rotations": np.zeros(theta[1].size).tolist()},
+            {"sample_id": "c", "status": "too_few_points", "excess_rotations": None}]
+    pq.write_table(pa.Table.from_pylist(rows), run / "iter-01" / "fit" / "part-00000.parquet")
+    figures = C.main(["--fidelity", "fid", "--runs", "loop", "--truth", str(truth), "--storage-root",
+                      str(tmp_path / "runs"), "--iteration", "1", "--record-as", "v", "--results-dir", str(results)])
+    truth_rows = {"a": {"excess_rotations": theta[0]}, "b": {"excess_rotations": theta[1]}}
+    rest_b = pseudo_label_errors(rows[1:2], truth_rows, toy_rig)[0]["bone_err_deg"]
+    rest_a = pseudo_label_errors([{**rows[0], "excess_rotations": rows[1]["excess_rotations"]}], truth_rows,
+                                 toy_rig)[0]["bone_err_deg"]
+    assert rest_a > 5 and rest_b > 5
+    assert figures["median_fit_bone_err_deg_loop_iter1"] == pytest.approx(round(rest_b / 2, 2), abs=0.006)
+    assert figures["median_rest_pose_bone_err_deg_loop_iter1"] == pytest.approx(round((rest_a + rest_b) / 2, 2),
+                                                                                abs=0.006)
+    assert figures["pct_bones_better_than_rest_loop_iter1"] == 50.0
+
+
 def test_a_missing_run_or_benchmark_is_named(tmp_path):
     results = tmp_path / "results"
     results.mkdir()

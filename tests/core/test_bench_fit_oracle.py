@@ -104,6 +104,17 @@ def test_pose_quality_against_the_rest_pose(scene, toy_rig):
     q = B.pose_quality(rows, {"s0": gt, "s1": gt, "s2": gt}, toy_rig)
     assert q["fitted"] == 2 and q["rest_pose_vertex_err_cm"] > 1.0
     assert q["pct_better_than_rest"] == 50.0  # the truth beats the rest pose, a wild pose does not
+    # a fit a twentieth of the way from the rest pose to the truth beats the rest pose in vertex error, yet its bone
+    # directions are hardly better than the rest pose's: the figure that shows how little it articulates
+    near = [{"sample_id": "s3", "status": "ok", "excess_rotations": (0.05 * theta).ravel().tolist()}]
+    q = B.pose_quality(rows[:1] + near, {"s0": gt, "s3": gt}, toy_rig)
+    assert q["pct_better_than_rest"] == 100.0 and q["pct_bones_better_than_rest"] == 100.0
+    fitted_errors, rest_errors = B.pose_errors(near, {"s3": gt}, toy_rig)
+    fitted, rest = fitted_errors[0]["bone_err_deg"], rest_errors[0]["bone_err_deg"]
+    assert 0.85 * rest < fitted < rest and rest > 5.0
+    assert q["median_rest_pose_bone_err_deg"] == pytest.approx(rest)
+    assert q["median_bone_err_deg"] == pytest.approx(0.5 * fitted, abs=1e-5)  # the median of ~0 and it
+
 
 
 def test_filter_figures_read_the_runs_precision_check(tmp_path):
