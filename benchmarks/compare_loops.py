@@ -12,7 +12,10 @@ next to the benchmark's recorded arms (``benchmarks/results/<fidelity>.json``).
 
 Figures: ``mcd_<label>_iter<i>``, ``rot_err_deg_<label>_iter<i>``, ``median_fit_vertex_err_cm_<label>_iter<i>``,
 ``filter_precision_<label>_iter<i>``, ``filter_base_rate_<label>_iter<i>``, ``fit_joint_angle_deg_<label>_iter<i>``
-(how far the fits articulate the rig: mean excess rotation of the non-root joints) for every variant, the benchmark's
+(how far the fits articulate the rig: mean excess rotation of the non-root joints),
+``median_fit_mask_iou_<label>_iter<i>`` and ``median_fit_mask_iou_gain_<label>_iter<i>`` (how well the fits'
+silhouettes explain the photos' masks, and how much better than the rest pose's; no truth needed) for every
+variant, the benchmark's
 ``mcd_{loop,control,oracle}_iter<i>`` and ``rot_err_deg_…`` copied, ``gap_to_control_cm_<label>`` (the
 variant's test mCD at the benchmark's last iteration, or at ``--iteration``, minus the control's: negative = the
 variant beats the control) and ``gap_recovered_<label>`` (the share of the control → oracle gap it closes there).
@@ -87,6 +90,8 @@ def run_figures(run_dir: Path, label: str, truth: dict | None = None, rig=None) 
                             if e is not None], dtype=np.float64)
             if len(err):
                 figures[f"median_fit_vertex_err_cm_{label}_iter{i}"] = round(float(np.median(err)), 2)
+    for filtered in sorted(run_dir.glob("iter-*/filter")):
+        figures.update(mask_figures(filtered, label, int(filtered.parent.name.split("-")[1])))
     for fit in sorted(run_dir.glob("iter-*/fit")):
         angle = fit_joint_angle_deg(fit)
         if angle is not None:
@@ -97,6 +102,23 @@ def run_figures(run_dir: Path, label: str, truth: dict | None = None, rig=None) 
         angle = fit_joint_angle_deg(run_dir / "iter-00" / "plan")
         if angle is not None:
             figures[f"fit_joint_angle_deg_{label}_iter1"] = round(angle, 1)
+    return figures
+
+
+def mask_figures(filter_dir: Path, label: str, iteration: int) -> dict[str, float]:
+    """Median ``mask_iou`` and ``mask_iou_gain`` of an iteration's fits (the filter's quality columns: the fitted
+    mesh's silhouette through its recovered camera against the photo's mask, and that IoU minus the rest pose's
+    through the same camera), over the fits that have them: how well the fits explain the photos, with no truth."""
+    import pyarrow.parquet as pq
+
+    figures: dict[str, float] = {}
+    for column in ("mask_iou", "mask_iou_gain"):
+        values = [v for part in sorted(filter_dir.glob("part-*.parquet")) if column in pq.read_schema(part).names
+                  for v in pq.read_table(part, columns=[column]).column(0).to_pylist() if v is not None]
+        values = np.array(values, dtype=np.float64)
+        values = values[np.isfinite(values)]
+        if len(values):
+            figures[f"median_fit_{column}_{label}_iter{iteration}"] = round(float(np.median(values)), 3)
     return figures
 
 

@@ -25,6 +25,11 @@ def _fake_run(root: Path, name: str, mcd: list[float]) -> Path:
     pq.write_table(pa.Table.from_pylist([{"sample_id": str(k), "vertex_err_cm": e}
                                          for k, e in enumerate([9.0, 11.0, 13.0, None])]),
                    ev / "pseudo_labels.parquet")
+    filtered = run / "iter-01" / "filter"
+    filtered.mkdir(parents=True)
+    pq.write_table(pa.Table.from_pylist([{"sample_id": str(k), "mask_iou": m, "mask_iou_gain": g} for k, (m, g) in
+                                         enumerate([(0.5, 0.1), (0.7, -0.1), (0.9, 0.3), (None, None)])]),
+                   filtered / "part-00000.parquet")
     fit = run / "iter-01" / "fit"
     fit.mkdir(parents=True)
     theta = [[0.5, 0.0, 0.0] + [0.0, 0.1, 0.0] * 2, [0.0] * 3 + [0.3, 0.0, 0.4, 0.0, 0.0, 0.0], None]
@@ -54,6 +59,7 @@ def test_variant_figures_sit_next_to_the_benchmark_arms(tmp_path):
     assert figures["gap_to_control_cm_sil"] == pytest.approx(-0.2) and figures["gap_to_control_cm_bad"] == 0.3
     assert figures["filter_precision_sil_iter1"] == 0.25 and figures["filter_base_rate_bad_iter1"] == 0.125
     assert figures["median_fit_vertex_err_cm_sil_iter1"] == 11.0  # the unfitted row (None) is left out
+    assert figures["median_fit_mask_iou_sil_iter1"] == 0.7 and figures["median_fit_mask_iou_gain_bad_iter1"] == 0.1
     # non-root joints of the ok fits: 0.1, 0.1, 0.5, 0 rad (the root's 0.5 rad and the unfitted row left out)
     assert figures["fit_joint_angle_deg_sil_iter1"] == round(float(np.degrees(0.7 / 4)), 1)
     assert figures["truth_joint_angle_deg"] == round(float(np.degrees(0.3)), 1)  # 0.2 and 0.4 rad, roots left out
