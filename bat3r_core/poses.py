@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr, ndtri
 
+from .config_utils import ConfigError
 from .rig import Rig
 
 __all__ = ["RandomPoseConfig", "sample_random_poses", "sample_toy_natural_poses", "TOY_POSE_FAMILIES",
@@ -46,8 +47,6 @@ class RandomPoseConfig:
     include_root: bool = False
 
     def __post_init__(self) -> None:
-        from .config_utils import ConfigError
-
         for name in ("sigma1", "sigma2", "beta_a", "beta_b", "max_angle"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:

@@ -93,15 +93,18 @@ def run_figures(run_dir: Path, label: str, truth: dict | None = None, rig=None) 
     for filtered in sorted(run_dir.glob("iter-*/filter")):
         figures.update(mask_figures(filtered, label, int(filtered.parent.name.split("-")[1])))
     for fit in sorted(run_dir.glob("iter-*/fit")):
-        angle = fit_joint_angle_deg(fit)
-        if angle is not None:
-            figures[f"fit_joint_angle_deg_{label}_iter{int(fit.parent.name.split('-')[1])}"] = round(angle, 1)
-    if truth is not None and rig is not None:
-        figures.update(bone_figures(run_dir, label, truth, rig))
+        i = int(fit.parent.name.split("-")[1])
+        rows = ok_pose_rows(fit)  # read once: the joint angle and the bone errors both score these poses
+        if rows:
+            figures[f"fit_joint_angle_deg_{label}_iter{i}"] = round(
+                mean_joint_angle_deg([r["excess_rotations"] for r in rows]), 1)
+        if truth is not None and rig is not None:
+            figures.update(bone_figures(rows, label, i, truth, rig))
     if shift:  # the random poses it trained on, in place of fits
-        angle = fit_joint_angle_deg(run_dir / "iter-00" / "plan")
-        if angle is not None:
-            figures[f"fit_joint_angle_deg_{label}_iter1"] = round(angle, 1)
+        rows = ok_pose_rows(run_dir / "iter-00" / "plan")
+        if rows:
+            figures[f"fit_joint_angle_deg_{label}_iter1"] = round(
+                mean_joint_angle_deg([r["excess_rotations"] for r in rows]), 1)
     return figures
 
 
@@ -122,29 +125,19 @@ def mask_figures(filter_dir: Path, label: str, iteration: int) -> dict[str, floa
     return figures
 
 
-def bone_figures(run_dir: Path, label: str, truth: dict, rig) -> dict[str, float]:
-    """Median bone direction error (degrees) of each iteration's ok fits with a true pose, of the rest pose for
-    the same images, and the share of fits that beat the rest pose by it."""
-    import pyarrow.parquet as pq
+def bone_figures(rows: list[dict], label: str, iteration: int, truth: dict, rig) -> dict[str, float]:
+    """Median bone direction error (degrees) of an iteration's ok fits ``rows`` that have a true pose, of the rest
+    pose for the same images, and the share of fits that beat the rest pose by it
+    (``bench_fit_oracle.pose_quality``, the fit oracle's own comparison)."""
+    from bench_fit_oracle import pose_quality
 
-    from bat3r_core import shards
-    from bat3r_core.evaluation_truth import pseudo_label_errors
-    from bat3r_core.pseudo_labels import rest_pose_errors
-
-    figures: dict[str, float] = {}
-    for fit in sorted(run_dir.glob("iter-*/fit")):
-        i = int(fit.parent.name.split("-")[1])
-        rows = [r for part in sorted(fit.glob("part-*.parquet"))
-                for r in pq.read_table(part, columns=["sample_id", "status", "excess_rotations"]).to_pylist()
-                if r["status"] == shards.STATUS_OK and r["sample_id"] in truth]
-        if not rows:
-            continue
-        fitted = np.array([e["bone_err_deg"] for e in pseudo_label_errors(rows, truth, rig)])
-        rest = np.array([e["bone_err_deg"] for e in rest_pose_errors(rows, truth, rig)])
-        figures[f"median_fit_bone_err_deg_{label}_iter{i}"] = round(float(np.median(fitted)), 2)
-        figures[f"median_rest_pose_bone_err_deg_{label}_iter{i}"] = round(float(np.median(rest)), 2)
-        figures[f"pct_bones_better_than_rest_{label}_iter{i}"] = round(float(100 * np.mean(fitted < rest)), 1)
-    return figures
+    rows = [r for r in rows if r.get("sample_id") in truth]
+    if not rows:
+        return {}
+    q = pose_quality(rows, truth, rig)
+    return {f"median_fit_bone_err_deg_{label}_iter{iteration}": round(q["median_bone_err_deg"], 2),
+            f"median_rest_pose_bone_err_deg_{label}_iter{iteration}": round(q["median_rest_pose_bone_err_deg"], 2),
+            f"pct_bones_better_than_rest_{label}_iter{iteration}": round(q["pct_bones_better_than_rest"], 1)}
 
 
 def warm_started_baseline(run_dir: Path) -> bool:
@@ -157,23 +150,18 @@ def warm_started_baseline(run_dir: Path) -> bool:
                 and parameters.get("iterations") == 0)
 
 
-def fit_joint_angle_deg(fit_dir: Path) -> float | None:
-    """Mean excess rotation angle (degrees) of the non-root joints over an iteration's ok fits (or a plan's render
-    jobs, which have no status column), or None.
-
-    How far the fits articulate the rig from its rest pose: what the loop's renders can teach beyond the canonical
-    renders (joint 0 is the root, whose rotation overlaps the global one; rigs keep parents before children)."""
+def ok_pose_rows(folder: Path) -> list[dict]:
+    """The rows of an iteration's fits (or of a plan's render jobs, which have no status column) whose status is ok
+    and that have a pose: ``excess_rotations``, with ``sample_id`` and ``status`` where the shards have them. Only
+    those columns are read."""
     import pyarrow.parquet as pq
 
-    poses = []
-    for part in sorted(fit_dir.glob("part-*.parquet")):
-        columns = [c for c in ("status", "excess_rotations") if c in pq.read_schema(part).names]
-        table = pq.read_table(part, columns=columns)
-        status = table.column("status").to_pylist() if "status" in columns else ["ok"] * len(table)
-        for st, theta in zip(status, table.column("excess_rotations").to_pylist()):
-            if st == "ok" and theta is not None:
-                poses.append(theta)
-    return mean_joint_angle_deg(poses) if poses else None
+    rows = []
+    for part in sorted(folder.glob("part-*.parquet")):
+        columns = [c for c in ("sample_id", "status", "excess_rotations") if c in pq.read_schema(part).names]
+        rows += [r for r in pq.read_table(part, columns=columns).to_pylist()
+                 if r.get("status", "ok") == "ok" and r.get("excess_rotations") is not None]
+    return rows
 
 
 def main(argv: list[str] | None = None) -> dict[str, float]:
