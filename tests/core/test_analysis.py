@@ -189,6 +189,7 @@ def test_summarize_pseudo_labels_counts_and_means():
         "loss_total": [0.1, 0.3, 0.5, 0.6, None],
         "loss_data": [0.05, 0.1, 0.2, 0.3, None],
         "joint_err_cm": [2.0, 4.0, 9.0, 9.0, None],
+        "bone_err_deg": [10.0, 20.0, 40.0, 40.0, None],
     })
     s = A.summarize_pseudo_labels(rows)
     assert (s.n, s.n_ok) == (5, 2)
@@ -198,5 +199,6 @@ def test_summarize_pseudo_labels_counts_and_means():
     assert set(s.losses) == {"loss_total", "loss_data"}
     assert s.mean_joint_err_cm == pytest.approx(3.0)
     assert math.isnan(s.mean_vertex_err_cm)
+    assert s.mean_bone_err_deg == pytest.approx(15.0)  # the ok rows only
     empty = A.summarize_pseudo_labels([])
     assert (empty.n, empty.n_ok) == (0, 0)

@@ -124,6 +124,7 @@ def _make_run(root: Path, iterations: int = 3, n: int = 120) -> Path:
                          "loss_total": float(rng.gamma(2, 0.05 / it)), "loss_data": float(rng.gamma(2, 0.03 / it)),
                          "loss_edge": float(rng.gamma(2, 0.01)), "joint_err_cm": float(rng.gamma(2, 3.0 / it)),
                          "vertex_err_cm": float(rng.gamma(2, 2.5 / it)), "angle_err_deg": float(rng.gamma(2, 4 / it)),
+                         "bone_err_deg": 12.0 / it,  # not drawn: the draws after it stay as they were
                          "azimuth_deg": float(rng.uniform(-180, 180)), "elevation_deg": float(5 * rng.standard_t(2)),
                          "roll_deg": float(4 * rng.standard_t(1.5)), "cluster": int(rng.integers(0, 10))}
                         for i, st in enumerate(status)]
@@ -278,6 +279,15 @@ def test_clusters_are_computed_from_pose_features_when_rows_carry_none(tmp_path)
     section = page[page.index('id="per-cluster"'):]
     section = section[:section.index("</section>")]
     assert "Clusters computed here from the samples" in section and "<img" in section
+
+
+def test_report_shows_the_fits_bone_direction_errors(full_run):
+    """The pseudo-label table's bone direction column: the mean over each iteration's ok fits (12° and 6° here)."""
+    text = (full_run / "report.html").read_text()
+    section = re.search(r'<section id="pseudo-labels">(.*?)</section>', text, re.S).group(1)
+    assert "bone direction err (°)" in section
+    rows = re.findall(r"<tr>(<td>.*?)</tr>", section)
+    assert rows[0].endswith("<td>12.00</td>") and rows[1].endswith("<td>6.00</td>"), rows[:2]
 
 
 def test_report_shows_the_collection_mask_ious_per_iteration(full_run, tmp_path):
