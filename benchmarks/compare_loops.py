@@ -22,6 +22,14 @@ variant beats the control) and ``gap_recovered_<label>`` (the share of the contr
 A random-poses baseline trained on from the same Φ₀ (``--random-poses --init-predictor``, iterations 0) is one
 training round from Φ₀: its figures count as iteration 1.
 
+A variant run at another seed (``--seed s --set train.seed=s``) is measured against the control and oracle at the
+same seed when its spec names a reference run, ``RUN:LABEL@wide-seed1``: the rounds ``bench_fidelity.py --seeds``
+caches there (``mcd_{control,oracle}_<label>_iter<i>``; the gap figures then use them). With ``--seeds-mean`` the
+runs are the seeds of one variant, and their mean is compared the way ``bench_fidelity`` compares seeds:
+``mcd_matched_mean``, ``mcd_{control,oracle}_matched_mean``, ``headroom_matched_mean`` and
+``gap_recovered_matched_mean`` (mean variant against the mean of each run's own control and oracle: the record's
+seed-0 arms for a run without a reference).
+
 With ``--truth`` each iteration's ok fits are also scored against the hidden poses by bone direction
 (``median_fit_bone_err_deg_<label>_iter<i>``, ``pct_bones_better_than_rest_<label>_iter<i>``, next to
 ``median_rest_pose_bone_err_deg_<label>_iter<i>``; ``evaluation_truth.pseudo_label_errors``): whether the poses
@@ -49,13 +57,32 @@ from bat3r_core.runs import RunLayout, read_manifest  # noqa: E402
 ARMS = ("loop", "control", "oracle")
 
 
-def _run_spec(text: str) -> tuple[str, str]:
-    name, _, label = text.partition(":")
+def _run_spec(text: str) -> tuple[str, str, str | None]:
+    spec, _, reference = text.partition("@")
+    name, _, label = spec.partition(":")
     label = label or name
-    if not name or not all(c.isalnum() or c in "_-" for c in label):
-        raise argparse.ArgumentTypeError(f"--runs: expected RUN[:LABEL] (label of letters, digits, '_', '-'), "
-                                         f"got {text!r}")
-    return name, label.replace("-", "_")
+    if not name or not all(c.isalnum() or c in "_-" for c in label) or ("@" in text and not reference):
+        raise argparse.ArgumentTypeError(f"--runs: expected RUN[:LABEL][@REFERENCE_RUN] (label of letters, digits, "
+                                         f"'_', '-'), got {text!r}")
+    return name, label.replace("-", "_"), reference or None
+
+
+def reference_figures(run_dir: Path, label: str) -> dict[str, float]:
+    """A variant's seed-matched control and oracle: the rounds ``bench_fidelity.py --seeds`` caches under
+    ``<reference run>/fidelity/{control,oracle}/round-NN/metrics.json`` (Φ₀ trained on with the variant's training
+    seed and scored with its evaluation seeds), as ``mcd_{control,oracle}_<label>_iter<i>``. Without them a variant
+    at another seed would be measured against seed 0's control, and the spread between seeds (a few tenths of a cm
+    here) would read as the loop's gain or loss."""
+    figures: dict[str, float] = {}
+    for arm in ("control", "oracle"):
+        for cached in sorted((run_dir / "fidelity" / arm).glob("round-*/metrics.json")):
+            i = int(cached.parent.name.split("-")[1])
+            row = json.loads(cached.read_text())
+            figures[f"mcd_{arm}_{label}_iter{i}"] = round(float(row["mcd_cm"]), 3)
+    if not any(k.startswith("mcd_control_") for k in figures):
+        raise FileNotFoundError(f"{run_dir / 'fidelity' / 'control'}: no round-NN/metrics.json (run "
+                                f"bench_fidelity.py --seeds for it, or name no @REFERENCE_RUN)")
+    return figures
 
 
 def run_figures(run_dir: Path, label: str, truth: dict | None = None, rig=None) -> dict[str, float]:
@@ -167,9 +194,14 @@ def ok_pose_rows(folder: Path) -> list[dict]:
 def main(argv: list[str] | None = None) -> dict[str, float]:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--fidelity", required=True, help="name of the benchmarks/results/<name>.json to compare with")
-    p.add_argument("--runs", type=_run_spec, action="append", required=True, metavar="RUN[:LABEL]",
-                   help="a bootstrap run of the same category started from the benchmark's Φ₀ (repeatable)")
+    p.add_argument("--runs", type=_run_spec, action="append", required=True, metavar="RUN[:LABEL][@REFERENCE_RUN]",
+                   help="a bootstrap run of the same category started from the benchmark's Φ₀ (repeatable); "
+                        "@REFERENCE_RUN: measure it against that run's cached seed-matched control and oracle "
+                        "rounds (bench_fidelity.py --seeds: <run>-seed<s>) instead of the benchmark's seed-0 arms")
     p.add_argument("--category", default="toy")
+    p.add_argument("--seeds-mean", action="store_true",
+                   help="the runs are seeds of one variant: also compare their mean test mCD against the mean of "
+                        "their controls and oracles (seed-matched where the run names a reference run)")
     p.add_argument("--iteration", type=int, default=None,
                    help="compare at this iteration (default: the benchmark's last; e.g. 1 for one-iteration variants)")
     p.add_argument("--storage-root", type=Path, default=None,
@@ -218,24 +250,46 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             rig = load_rig(asset)
         else:
             lines.append(f"no bone direction errors: run {args.runs[0][0]!r} records no asset in its manifest")
-    for name, label in args.runs:
+    matched = []  # (variant, control, oracle) at the last iteration, each against its own references
+    for name, label, reference in args.runs:
         got = run_figures(Path(args.storage_root) / args.category / name, label, truth, rig)
         figures.update(got)
+        control, oracle, which = figures[f"mcd_control_iter{last}"], figures.get(f"mcd_oracle_iter{last}"), ""
+        if reference is not None:
+            refs = reference_figures(Path(args.storage_root) / args.category / reference, label)
+            figures.update(refs)
+            if f"mcd_control_{label}_iter{last}" not in refs:
+                raise SystemExit(f"--runs {name}@{reference}: the reference run has no control round {last}")
+            control, oracle = refs[f"mcd_control_{label}_iter{last}"], refs.get(f"mcd_oracle_{label}_iter{last}")
+            which = f" (seed-matched, {reference})"
         final = got.get(f"mcd_{label}_iter{last}")
         if final is not None:
-            gap = round(final - figures[f"mcd_control_iter{last}"], 3)
+            gap = round(final - control, 3)
             figures[f"gap_to_control_cm_{label}"] = gap
-            oracle = figures.get(f"mcd_oracle_iter{last}")
-            control = figures[f"mcd_control_iter{last}"]
             recovered = float("nan") if oracle is None else gap_recovered(control, oracle, final)
             if np.isfinite(recovered):  # the share of the control -> oracle gap it closes (none: no gap)
                 figures[f"gap_recovered_{label}"] = round(recovered, 3)
+            if oracle is not None:
+                matched.append((final, control, oracle))
             lines.append(f"{label} ({name}): iteration {last} test mCD {final:.2f} cm against the control's "
-                         f"{figures[f'mcd_control_iter{last}']:.2f} and the loop's "
+                         f"{control:.2f}{which} and the loop's "
                          f"{figures.get(f'mcd_loop_iter{last}', float('nan')):.2f}: "
                          + ("beats the control" if gap < 0 else "behind the control"))
         else:
             lines.append(f"{label} ({name}): no test mCD at iteration {last} yet")
+    if args.seeds_mean:  # the runs are seeds of one variant: mean against mean control and oracle (bench_fidelity)
+        if len(matched) < 2:
+            raise SystemExit(f"--seeds-mean: needs two or more runs with a test mCD and an oracle at iteration {last}, "
+                             f"got {len(matched)}")
+        final, control, oracle = (float(np.mean(c)) for c in zip(*matched))
+        figures.update(mcd_matched_mean=round(final, 3), mcd_control_matched_mean=round(control, 3),
+                       mcd_oracle_matched_mean=round(oracle, 3), headroom_matched_mean=round(oracle / control, 3))
+        recovered = gap_recovered(control, oracle, final)
+        if np.isfinite(recovered):
+            figures["gap_recovered_matched_mean"] = round(recovered, 3)
+        lines.append(f"over the {len(matched)} seeds: mean mCD {final:.2f} cm against the control's "
+                     f"{control:.2f} and the oracle's {oracle:.2f} (headroom {oracle / control:.3f}): "
+                     f"{recovered:.0%} of the gap recovered")
     for line in lines:
         print(line)
     record(args.record_as, figures, notes=f"loop variants from {args.fidelity}'s Φ₀ against its arms. "

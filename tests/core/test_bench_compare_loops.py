@@ -145,3 +145,51 @@ def test_a_missing_run_or_benchmark_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"never-ran/metrics.parquet: no such file"):
         C.main(["--fidelity", "fid", "--runs", "never-ran", "--storage-root", str(tmp_path), "--record-as", "v",
                 "--results-dir", str(results)])
+
+
+def test_variants_at_other_seeds_meet_their_own_seeds_control_and_oracle(tmp_path):
+    """RUN:LABEL@REFERENCE reads the reference run's cached fidelity rounds (what bench_fidelity --seeds writes) as
+    that variant's control and oracle; with --seeds-mean the runs are also compared as a mean (mean variant against
+    the mean of their own controls and oracles), as bench_fidelity compares seeds."""
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "fid.json").write_text(json.dumps({"mcd_control_iter2": 10.4, "mcd_oracle_iter2": 10.0}))
+    runs = tmp_path / "runs"
+    _fake_run(runs, "v1", [11.0, 10.8, 10.5])
+    _fake_run(runs, "v2", [11.0, 10.8, 10.9])
+    for ref, (control, oracle) in (("ref1", (10.7, 10.1)), ("ref2", (10.5, 9.9))):
+        for arm, last in (("control", control), ("oracle", oracle)):
+            for i, m in ((1, last + 0.2), (2, last)):
+                out = runs / "toy" / ref / "fidelity" / arm / f"round-{i:02d}"
+                out.mkdir(parents=True)
+                (out / "metrics.json").write_text(json.dumps({"mcd_cm": m, "rot_err_deg": 20.0}))
+    figures = C.main(["--fidelity", "fid", "--runs", "v1:a@ref1", "--runs", "v2:b@ref2", "--storage-root", str(runs),
+                      "--seeds-mean", "--record-as", "v", "--results-dir", str(results)])
+    assert figures["mcd_control_a_iter2"] == 10.7 and figures["mcd_oracle_b_iter1"] == pytest.approx(10.1)
+    # seed-matched gaps: a 10.5 vs control 10.7 / oracle 10.1 -> 1/3 recovered; b 10.9 vs 10.5 / 9.9 -> -2/3
+    assert figures["gap_to_control_cm_a"] == pytest.approx(-0.2) and figures["gap_to_control_cm_b"] == 0.4
+    assert figures["gap_recovered_a"] == pytest.approx(1 / 3, abs=1e-3)
+    assert figures["gap_recovered_b"] == pytest.approx(-2 / 3, abs=1e-3)
+    # means: variant 10.7, control 10.6, oracle 10.0 -> headroom 0.943, recovered -1/6
+    assert figures["mcd_matched_mean"] == 10.7 and figures["mcd_control_matched_mean"] == 10.6
+    assert figures["headroom_matched_mean"] == round(10.0 / 10.6, 3)
+    assert figures["gap_recovered_matched_mean"] == pytest.approx(-1 / 6, abs=1e-3)
+    assert "(seed-matched, ref1)" in json.loads((results / "v.json").read_text())["notes"]
+    # without the @ the record's seed-0 arms are that run's references (a: 10.5 against 10.4 / 10.0); means with b:
+    # variant 10.7, control 10.45, oracle 9.95 -> -1/2; without --seeds-mean no mean is formed
+    figures = C.main(["--fidelity", "fid", "--runs", "v1:a", "--runs", "v2:b@ref2", "--storage-root", str(runs),
+                      "--seeds-mean", "--record-as", "v", "--results-dir", str(results)])
+    assert figures["gap_recovered_a"] == pytest.approx(-0.25)
+    assert figures["gap_recovered_matched_mean"] == pytest.approx(-0.5, abs=1e-3)
+    figures = C.main(["--fidelity", "fid", "--runs", "v1:a", "--runs", "v2:b@ref2", "--storage-root", str(runs),
+                      "--record-as", "v", "--results-dir", str(results)])
+    assert "gap_recovered_matched_mean" not in figures
+    with pytest.raises(SystemExit, match="--seeds-mean: needs two or more runs"):
+        C.main(["--fidelity", "fid", "--runs", "v1:a@ref1", "--storage-root", str(runs), "--seeds-mean",
+                "--record-as", "v", "--results-dir", str(results)])
+    with pytest.raises(FileNotFoundError, match=r"nope/fidelity/control: no round-NN/metrics.json"):
+        C.main(["--fidelity", "fid", "--runs", "v1:a@nope", "--storage-root", str(runs), "--record-as", "v",
+                "--results-dir", str(results)])
+    with pytest.raises(SystemExit):  # argparse: an empty reference
+        C.main(["--fidelity", "fid", "--runs", "v1:a@", "--storage-root", str(runs), "--record-as", "v",
+                "--results-dir", str(results)])
