@@ -59,7 +59,12 @@ def _test_metrics(settings, predictor: Path, out: Path, iteration: int, seed: in
     if not truth:
         raise ValueError(f"the {split} split of the run's category has no ground_truth folder in the catalog")
     evaluate_dir = out / ("evaluate" if split == "test" else f"evaluate_{split}")
-    predict_collection(predictor, settings.layout.run_stage_dir(split), out / f"{split}_infer",
+    images = settings.layout.run_stage_dir(split)
+    if not shards.list_shards(images):
+        raise FileNotFoundError(f"{images}: no {split} shards to score (run the bootstrap flow for run "
+                                f"{settings.layout.run_name!r} first, e.g. with --iterations 0, to prepare its "
+                                f"{split} split)")
+    predict_collection(predictor, images, out / f"{split}_infer",
                        feature_fn=make_feature_fn(settings.features), device="cpu")
     gt = evaluation_truth.load_ground_truth(Path(truth) / "ground_truth.npz")
     rig = load_rig(settings.assets.asset)

@@ -12,7 +12,9 @@ each evaluated on the same test split with the loop's own metrics (``bat3r_core.
 ``--ablations`` adds the paper's ablations of the loop, each a bootstrap run starting from the same Φ₀
 (``init_predictor``): no fitting regularisation, no view augmentation, no pseudo-label filter. ``--seeds 0 S ...``
 repeats the three arms from the same Φ₀ with each extra seed (``seed_arms``) and reports their mean, spread and the
-paired loop − control difference (``seed_figures``); ``evaluation_spread`` scores the loop's last test predictions
+paired loop − control difference (``seed_figures``); with ``--references-only`` it trains only the extra seeds'
+control and oracle rounds (``seed_references``), the references ``compare_loops.py`` measures a loop variant run at
+those seeds against; ``evaluation_spread`` scores the loop's last test predictions
 with five evaluation seeds, the part of any spread between runs that is the evaluation's own sampling.
 
 Two figures say what limits the headroom when there is little: the **map floors** (``map_floors``: the test mCD of
@@ -30,7 +32,7 @@ Results: ``benchmarks/results/<record-as>.json`` (test mCD, % > 5 cm and ΔR per
 ``benchmarks/results/<record-as>.png``.
 
     python benchmarks/bench_fidelity.py [--preset bench] [--run-name bench] [--ablations] [--seeds 0 1 2]
-                                        [--set KEY=VALUE ...]
+                                        [--references-only] [--set KEY=VALUE ...]
 
 Measured: 48 min on 2 AMD EPYC cores (65 min on 2 Intel Xeon cores) at the ``bench`` preset without ablations
 (collection and test split rendered from scratch); each ablation adds about 20 min, ``--oracle-sizes 1536`` 14 min.
@@ -316,21 +318,37 @@ def seed_arms(seeds: list[int], preset: str, run_name: str, overrides: dict, cat
     arms ``<arm>_seed<s>``: how far one arm moves between seeds, which bounds what a single run can tell apart."""
     from flows._settings import resolve_run
 
-    canonical = resolve_run(category, preset, run_name, overrides, catalog=catalog).layout.stage_dir(0, "render")
     arms: dict[str, dict[int, dict]] = {}
     for s in seeds:
         if s == 0:
             continue
-        name, seeded = f"{run_name}-seed{s}", {**overrides, "train.seed": s}
-        loop = _run_loop(category, preset, name, seeded, iterations, catalog, init_predictor=str(phi0), seed=s)
-        settings = resolve_run(category, preset, name, seeded, catalog=catalog)
+        loop = _run_loop(category, preset, f"{run_name}-seed{s}", {**overrides, "train.seed": s}, iterations, catalog,
+                         init_predictor=str(phi0), seed=s)
         arms[f"loop_seed{s}"] = loop
-        arms[f"control_seed{s}"] = {0: loop[0], **_reference_rounds(settings, "control", lambda out: canonical,
-                                                                     iterations, s, start=phi0)}
-        arms[f"oracle_seed{s}"] = {0: loop[0], **_reference_rounds(
-            settings, "oracle", lambda out, st=settings: _oracle_dataset(st, load_rig(st.assets.asset), out),
-            iterations, s, start=phi0)}
+        arms.update(seed_references(s, preset, run_name, overrides, catalog, phi0, iterations, category, loop[0]))
     return arms
+
+
+def seed_references(seed: int, preset: str, run_name: str, overrides: dict, catalog: str | None, phi0: Path,
+                    iterations: int, category: str = "toy", phi0_row: dict | None = None) -> dict[str, dict[int, dict]]:
+    """The control and the oracle of seed ``seed`` (arms ``control_seed<s>``, ``oracle_seed<s>``): Φ₀ trained on
+    with ``train.seed = s`` and scored with the evaluation seeds ``s + i``, cached under the run
+    ``<run name>-seed<s>`` (``fidelity/{control,oracle}/round-NN``). Without ``phi0_row`` (Φ₀'s test row at that
+    seed, which the seed's loop gives) that run is prepared by a bootstrap run of 0 iterations from Φ₀ (its
+    collection and test split, Φ₀ scored at seed s): the references alone, what ``--references-only`` trains and
+    what ``compare_loops.py`` reads for a loop variant run at seed s (``RUN:LABEL@<run name>-seed<s>``)."""
+    from flows._settings import resolve_run
+
+    canonical = resolve_run(category, preset, run_name, overrides, catalog=catalog).layout.stage_dir(0, "render")
+    name, seeded = f"{run_name}-seed{seed}", {**overrides, "train.seed": seed}
+    if phi0_row is None:
+        phi0_row = _run_loop(category, preset, name, seeded, 0, catalog, init_predictor=str(phi0), seed=seed)[0]
+    settings = resolve_run(category, preset, name, seeded, catalog=catalog)
+    return {f"control_seed{seed}": {0: phi0_row, **_reference_rounds(settings, "control", lambda out: canonical,
+                                                                    iterations, seed, start=phi0)},
+            f"oracle_seed{seed}": {0: phi0_row, **_reference_rounds(
+                settings, "oracle", lambda out: _oracle_dataset(settings, load_rig(settings.assets.asset), out),
+                iterations, seed, start=phi0)}}
 
 
 def seed_figures(seeds: list[int], arms: dict[str, dict[int, dict]], iterations: int) -> dict[str, float]:
@@ -488,6 +506,10 @@ def main(argv: list[str] | None = None) -> dict:
                    help="repeat the loop, the control and the oracle from the same Φ₀ with these seeds (0: the "
                         "benchmark's own arms) and report each arm's mean and spread (~25 min per extra seed and "
                         "iteration on 2 cores)")
+    p.add_argument("--references-only", action="store_true",
+                   help="with --seeds: only train and cache the control and oracle rounds of the extra seeds (under "
+                        "<run name>-seed<s>, from the finished run's Φ₀), run no loop and record nothing: the "
+                        "seed-matched references compare_loops.py reads for loop variants run at those seeds")
     p.add_argument("--record-as", type=record_name, default="fidelity", help="name of results/<name>.json and .png")
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR,
                    help="folder of the json and plot (default: benchmarks/results, which also refreshes RESULTS.md)")
@@ -513,8 +535,23 @@ def main(argv: list[str] | None = None) -> dict:
     if any(n < 1 for n in args.oracle_sizes):
         p.error("--oracle-sizes: expected collection sizes >= 1")
 
-    loop = _run_loop(args.category, args.preset, run_name, overrides, iterations, catalog)
     phi0 = settings.layout.stage_dir(0, "train") / "predictor.pt"
+    if args.references_only:
+        if args.seeds == [0]:
+            p.error("--references-only: name the extra seeds whose control and oracle to train, e.g. --seeds 0 1 2")
+        if not phi0.is_file():
+            p.error(f"--references-only: {phi0} does not exist (run the benchmark, or the bootstrap flow for run "
+                    f"{run_name!r}, first)")
+        references = {}
+        for s in args.seeds:
+            if s:
+                references.update(seed_references(s, args.preset, run_name, overrides, catalog, phi0, iterations,
+                                                  args.category))
+        for arm, rows in references.items():
+            print(f"{arm}: test mCD " + ", ".join(f"{rows[i]['mcd_cm']:.2f}" for i in sorted(rows))
+                  + f" cm (iterations 0..{iterations})")
+        return references
+    loop = _run_loop(args.category, args.preset, run_name, overrides, iterations, catalog)
     run_seed = 0  # bootstrap's default seed: the loop evaluates iteration i with seed + i
     control = {0: loop[0], **_reference_rounds(settings, "control", lambda out: settings.layout.stage_dir(0, "render"),
                                                iterations, run_seed)}

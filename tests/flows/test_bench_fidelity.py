@@ -153,6 +153,42 @@ def test_finished_reference_rounds_are_not_trained_again(bench_run, catalog):
     assert again == {"mcd_oracle_on_collection": figures["mcd_oracle_on_collection"]}
     with pytest.raises(ValueError, match="split: expected 'test' or 'collection', got 'train'"):
         B._test_metrics(settings, ckpt, settings.layout.root / "unused", 1, 0, split="train")
+    # a run that never prepared its test split (a seed's reference run made before its loop) is named, not scored
+    unprepared = resolve_run("toy", "bench", "bt-never-ran", BENCH_TINY)
+    with pytest.raises(FileNotFoundError, match=r"bt-never-ran/test: no test shards to score .*'bt-never-ran'"):
+        B._test_metrics(unprepared, ckpt, settings.layout.root / "unused", 1, 0)
+
+
+def test_references_only_trains_the_extra_seeds_control_and_oracle_and_no_loop(bench_run, catalog, tmp_path):
+    """--references-only --seeds 0 1 2: seed 1's cached rounds (the fixture's --seeds 0 1) are read back, not trained
+    again; seed 2 gets a 0-iteration run (its test split, Φ₀ scored at seed 2) and its control and oracle rounds, no
+    loop; nothing is recorded. compare_loops.py then measures a run at seed 2 against them."""
+    import compare_loops as C
+
+    figures, _ = bench_run
+    seed1 = RunLayout(catalog / "runs", "toy", "bt-seed1")
+    ckpt = seed1.root / "fidelity" / "control" / "round-01" / "train" / "predictor.pt"
+    before = ckpt.stat().st_mtime_ns
+    refs = B.main([*ARGS, "--seeds", "0", "1", "2", "--references-only", "--results-dir", str(tmp_path)])
+    assert ckpt.stat().st_mtime_ns == before
+    for arm in ("control", "oracle"):
+        assert refs[f"{arm}_seed1"][1]["mcd_cm"] == pytest.approx(figures[f"mcd_{arm}_seed1_iter1"], abs=1e-3)
+        assert refs[f"{arm}_seed1"][0]["mcd_cm"] == pytest.approx(figures["mcd_loop_seed1_iter0"], abs=1e-3)
+    seed2 = RunLayout(catalog / "runs", "toy", "bt-seed2")
+    assert read_manifest(seed2)["config"]["parameters"]["iterations"] == 0
+    assert not (seed2.root / "iter-01").exists()
+    for arm in ("control", "oracle"):
+        assert (seed2.root / "fidelity" / arm / "round-01" / "metrics.json").is_file()
+        assert math.isfinite(refs[f"{arm}_seed2"][1]["mcd_cm"])
+    assert not list(tmp_path.iterdir()), "--references-only records nothing"
+    # a run at seed 2 measured against them: its own Φ₀ row stands in for a loop run here
+    compared = C.main(["--fidelity", "fidelity", "--runs", "bt-seed2:s2@bt-seed2", "--category", "toy",
+                       "--storage-root", str(catalog / "runs"), "--iteration", "1", "--record-as", "v",
+                       "--results-dir", str(bench_run[1])])
+    assert compared["mcd_control_s2_iter1"] == round(refs["control_seed2"][1]["mcd_cm"], 3)
+    assert compared["mcd_oracle_s2_iter1"] == round(refs["oracle_seed2"][1]["mcd_cm"], 3)
+    with pytest.raises(SystemExit):  # nothing to train: no extra seed
+        B.main([*ARGS, "--references-only", "--results-dir", str(tmp_path)])
 
 
 def test_the_fit_oracle_runs_on_the_bench_run(bench_run, catalog, tmp_path):
