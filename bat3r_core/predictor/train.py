@@ -88,7 +88,16 @@ def _dist_env() -> tuple[int, int, int]:
 
 
 def _torch_save_atomic(obj: Any, path: Path) -> None:
-    atomic_write(path, lambda tmp: torch.save(obj, tmp))
+    """``torch.save`` to ``path`` atomically, with bytes that depend on ``obj`` only. Saved to a path, torch names
+    the archive's root folder after the file, here a random temporary name: the same weights would hash differently
+    on every save, and a train stage that re-exports a finished model (its cache invalidated by a code change) would
+    invalidate every stage downstream and retrain the next iteration from scratch. Through a file object the root
+    is always ``archive``."""
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+
+    atomic_write(path, write)
 
 
 def _rng_state() -> dict[str, Any]:

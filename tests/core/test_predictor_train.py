@@ -277,6 +277,17 @@ def test_resume_after_kill_reproduces_uninterrupted_weights(shards16, tmp_path):
     assert all(torch.equal(model.state_dict()[k], reference[k]) for k in reference)
 
 
+def test_a_finished_model_exported_again_has_the_same_bytes(shards16, tmp_path):
+    """A train stage re-run on a finished checkpoint (its cache invalidated by a code change) exports predictor.pt
+    again: the bytes must not change, or the content hashes of every later stage change with them and the next
+    iteration retrains from scratch."""
+    first = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "t").train()
+    before = first.read_bytes()
+    again = Trainer(ShardDataset(shards16, cache_shards=1), SMALL_MODEL, SMALL_TRAIN, tmp_path / "t")
+    assert again.step == SMALL_TRAIN.steps
+    assert again.train() == first and first.read_bytes() == before
+
+
 def test_a_stop_request_ends_training_with_a_checkpoint_of_its_step_and_resume_is_exact(shards16, tmp_path):
     """A stopped run (``bat3r_core.stopping``: SIGTERM, a cancel, Ctrl-C) writes ``checkpoint.pt`` at the step it
     reached — off the ``checkpoint_every`` grid too — and the rerun ends with the uninterrupted run's weights."""
