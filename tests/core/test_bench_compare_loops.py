@@ -193,3 +193,37 @@ def test_variants_at_other_seeds_meet_their_own_seeds_control_and_oracle(tmp_pat
     with pytest.raises(SystemExit):  # argparse: an empty reference
         C.main(["--fidelity", "fid", "--runs", "v1:a@", "--storage-root", str(runs), "--record-as", "v",
                 "--results-dir", str(results)])
+
+
+def test_past_the_records_last_iteration_only_with_seed_matched_references(tmp_path):
+    """A record of two iterations cannot say where the control is at iteration 3, but a run whose reference run has
+    cached round 3 can be measured there; a run without a reference at that iteration is refused by name."""
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "fid.json").write_text(json.dumps({"mcd_control_iter2": 10.4, "mcd_oracle_iter2": 10.0,
+                                                  "mcd_loop_iter2": 10.6}))
+    runs = tmp_path / "runs"
+    _fake_run(runs, "v1", [11.0, 10.8, 10.6, 10.5])
+    _fake_run(runs, "v2", [11.0, 10.8, 10.9, 10.8])
+    for ref, (control, oracle) in (("ref1", (10.7, 10.1)), ("ref2", (10.9, 10.3))):
+        for arm, last in (("control", control), ("oracle", oracle)):
+            for i in (1, 2, 3):
+                out = runs / "toy" / ref / "fidelity" / arm / f"round-{i:02d}"
+                out.mkdir(parents=True)
+                (out / "metrics.json").write_text(json.dumps({"mcd_cm": last + 0.1 * (3 - i), "rot_err_deg": 20.0}))
+    figures = C.main(["--fidelity", "fid", "--runs", "v1:a@ref1", "--runs", "v2:b@ref2", "--storage-root", str(runs),
+                      "--iteration", "3", "--seeds-mean", "--record-as", "v", "--results-dir", str(results)])
+    # a: 10.5 against 10.7 / 10.1 -> 1/3; b: 10.8 against 10.9 / 10.3 -> 1/6; means 10.65, 10.8, 10.2 -> 1/4
+    assert figures["gap_recovered_a"] == pytest.approx(1 / 3, abs=1e-3)
+    assert figures["gap_recovered_b"] == pytest.approx(1 / 6, abs=1e-3)
+    assert figures["gap_recovered_matched_mean"] == pytest.approx(0.25, abs=1e-3)
+    assert figures["headroom_matched_mean"] == round(10.2 / 10.8, 3)
+    notes = json.loads((results / "v.json").read_text())["notes"]
+    assert "a (v1): iteration 3 test mCD 10.50 cm against the control's 10.70 (seed-matched, ref1): beats" in notes
+    assert "loop's" not in notes  # the record's loop has no iteration 3 to quote
+    with pytest.raises(SystemExit, match=r"no control figure at iteration 3 .*RUN:LABEL@REFERENCE_RUN"):
+        C.main(["--fidelity", "fid", "--runs", "v1:a@ref1", "--runs", "v2:b", "--storage-root", str(runs),
+                "--iteration", "3", "--record-as", "v", "--results-dir", str(results)])
+    with pytest.raises(SystemExit, match="the reference run has no control round 4"):
+        C.main(["--fidelity", "fid", "--runs", "v1:a@ref1", "--storage-root", str(runs),
+                "--iteration", "4", "--record-as", "v", "--results-dir", str(results)])
