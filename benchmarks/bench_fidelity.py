@@ -13,8 +13,8 @@ each evaluated on the same test split with the loop's own metrics (``bat3r_core.
 (``init_predictor``): no fitting regularisation, no view augmentation, no pseudo-label filter. ``--seeds 0 S ...``
 repeats the three arms from the same Φ₀ with each extra seed (``seed_arms``) and reports their mean, spread and the
 paired loop − control difference (``seed_figures``); with ``--references-only`` it trains only the extra seeds'
-control and oracle rounds (``seed_references``), the references ``compare_loops.py`` measures a loop variant run at
-those seeds against; ``evaluation_spread`` scores the loop's last test predictions
+control and oracle rounds (``references_of_seeds``; seed 0's too, when the benchmark's own are missing), the
+references ``compare_loops.py`` measures a loop variant run at those seeds against; ``evaluation_spread`` scores the loop's last test predictions
 with five evaluation seeds, the part of any spread between runs that is the evaluation's own sampling.
 
 Two figures say what limits the headroom when there is little: the **map floors** (``map_floors``: the test mCD of
@@ -351,6 +351,44 @@ def seed_references(seed: int, preset: str, run_name: str, overrides: dict, cata
                 iterations, seed, start=phi0)}}
 
 
+def own_references(settings, iterations: int) -> dict[str, dict[int, dict]] | None:
+    """Seed 0's control and oracle as the benchmark itself trained them, under the run (``fidelity/{control,oracle}``),
+    when every round up to ``iterations`` is there (arms ``control_seed0``, ``oracle_seed0``, Φ₀'s test row at 0);
+    None otherwise, and nothing is trained or read."""
+    root = settings.layout.root / "fidelity"
+    if not all((root / arm / f"round-{i:02d}" / "metrics.json").is_file()
+               for arm in ("control", "oracle") for i in range(1, iterations + 1)):
+        return None
+    phi0_row = _test_rows(evaluation.read_metrics(settings.layout.root).to_pylist()).get(0)
+    if phi0_row is None:
+        return None
+    return {f"{arm}_seed0": {0: phi0_row, **_reference_rounds(settings, arm, None, iterations, 0)}
+            for arm in ("control", "oracle")}  # every round is cached: nothing trains, data_fn is never called
+
+
+def references_of_seeds(seeds: list[int], preset: str, run_name: str, overrides: dict, catalog: str | None,
+                        phi0: Path, iterations: int, category: str = "toy") -> tuple[dict[str, dict[int, dict]],
+                                                                                    dict[int, str]]:
+    """What ``--references-only`` trains: the control and the oracle of every seed of ``seeds`` (arms
+    ``control_seed<s>``, ``oracle_seed<s>``) and, per seed, the run that holds them, the ``@REFERENCE_RUN`` of
+    ``compare_loops.py --runs``. Seed ``s`` > 0: ``seed_references`` under ``<run name>-seed<s>``. Seed 0: the
+    benchmark's own rounds under the run when it trained all of them, else ``seed_references(0, …)`` under
+    ``<run name>-seed0``: same Φ₀, seed, canonical renders and collection, so the same figures, under a name of
+    their own that a partly trained or deleted ``fidelity/`` of the run cannot mix with."""
+    from flows._settings import resolve_run
+
+    references: dict[str, dict[int, dict]] = {}
+    holders: dict[int, str] = {}
+    for s in seeds:
+        own = None
+        if s == 0:
+            own = own_references(resolve_run(category, preset, run_name, overrides, catalog=catalog), iterations)
+        references.update(own or seed_references(s, preset, run_name, overrides, catalog, phi0, iterations,
+                                                 category))
+        holders[s] = run_name if own else f"{run_name}-seed{s}"
+    return references, holders
+
+
 def seed_figures(seeds: list[int], arms: dict[str, dict[int, dict]], iterations: int) -> dict[str, float]:
     """Over the seeds (seed 0: the arms ``loop``, ``control``, ``oracle``; others ``<arm>_seed<s>``), the last
     iteration's test mCD of each arm: ``mcd_<arm>_seeds_mean`` and ``_sd`` (sample standard deviation), the paired
@@ -507,9 +545,10 @@ def main(argv: list[str] | None = None) -> dict:
                         "benchmark's own arms) and report each arm's mean and spread (~25 min per extra seed and "
                         "iteration on 2 cores)")
     p.add_argument("--references-only", action="store_true",
-                   help="with --seeds: only train and cache the control and oracle rounds of the extra seeds (under "
-                        "<run name>-seed<s>, from the finished run's Φ₀), run no loop and record nothing: the "
-                        "seed-matched references compare_loops.py reads for loop variants run at those seeds")
+                   help="only train and cache the control and oracle rounds of every seed of --seeds (seed s under "
+                        "<run name>-seed<s>, from the finished run's Φ₀; seed 0: the benchmark's own rounds when all "
+                        "are there, else under <run name>-seed0), run no loop and record nothing: the seed-matched "
+                        "references compare_loops.py reads for loop variants run at those seeds")
     p.add_argument("--record-as", type=record_name, default="fidelity", help="name of results/<name>.json and .png")
     p.add_argument("--results-dir", type=Path, default=RESULTS_DIR,
                    help="folder of the json and plot (default: benchmarks/results, which also refreshes RESULTS.md)")
@@ -537,19 +576,17 @@ def main(argv: list[str] | None = None) -> dict:
 
     phi0 = settings.layout.stage_dir(0, "train") / "predictor.pt"
     if args.references_only:
-        if args.seeds == [0]:
-            p.error("--references-only: name the extra seeds whose control and oracle to train, e.g. --seeds 0 1 2")
         if not phi0.is_file():
             p.error(f"--references-only: {phi0} does not exist (run the benchmark, or the bootstrap flow for run "
                     f"{run_name!r}, first)")
-        references = {}
-        for s in args.seeds:
-            if s:
-                references.update(seed_references(s, args.preset, run_name, overrides, catalog, phi0, iterations,
-                                                  args.category))
+        references, holders = references_of_seeds(args.seeds, args.preset, run_name, overrides, catalog, phi0,
+                                                  iterations, args.category)
         for arm, rows in references.items():
             print(f"{arm}: test mCD " + ", ".join(f"{rows[i]['mcd_cm']:.2f}" for i in sorted(rows))
                   + f" cm (iterations 0..{iterations})")
+        for s, holder in holders.items():
+            print(f"seed {s}: compare a loop variant run at seed {s} with compare_loops.py --runs "
+                  f"RUN:LABEL@{holder}")
         return references
     loop = _run_loop(args.category, args.preset, run_name, overrides, iterations, catalog)
     run_seed = 0  # bootstrap's default seed: the loop evaluates iteration i with seed + i

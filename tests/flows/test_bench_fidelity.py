@@ -160,9 +160,10 @@ def test_finished_reference_rounds_are_not_trained_again(bench_run, catalog):
 
 
 def test_references_only_trains_the_extra_seeds_control_and_oracle_and_no_loop(bench_run, catalog, tmp_path):
-    """--references-only --seeds 0 1 2: seed 1's cached rounds (the fixture's --seeds 0 1) are read back, not trained
-    again; seed 2 gets a 0-iteration run (its test split, Φ₀ scored at seed 2) and its control and oracle rounds, no
-    loop; nothing is recorded. compare_loops.py then measures a run at seed 2 against them."""
+    """--references-only --seeds 0 1 2: seed 0's (the benchmark's own) and seed 1's cached rounds (the fixture's
+    --seeds 0 1) are read back, not trained again; seed 2 gets a 0-iteration run (its test split, Φ₀ scored at seed 2)
+    and its control and oracle rounds, no loop; nothing is recorded. compare_loops.py then measures a run at seed 2
+    against them."""
     import compare_loops as C
 
     figures, _ = bench_run
@@ -187,8 +188,35 @@ def test_references_only_trains_the_extra_seeds_control_and_oracle_and_no_loop(b
                        "--results-dir", str(bench_run[1])])
     assert compared["mcd_control_s2_iter1"] == round(refs["control_seed2"][1]["mcd_cm"], 3)
     assert compared["mcd_oracle_s2_iter1"] == round(refs["oracle_seed2"][1]["mcd_cm"], 3)
-    with pytest.raises(SystemExit):  # nothing to train: no extra seed
-        B.main([*ARGS, "--references-only", "--results-dir", str(tmp_path)])
+    # seed 0's are the benchmark's own rounds, read back under the run itself: no bt-seed0 run is made
+    for arm in ("control", "oracle"):
+        assert refs[f"{arm}_seed0"][1]["mcd_cm"] == pytest.approx(figures[f"mcd_{arm}_iter1"], abs=1e-3)
+        assert refs[f"{arm}_seed0"][0]["mcd_cm"] == pytest.approx(figures["mcd_loop_iter0"], abs=1e-3)
+    assert not (catalog / "runs" / "toy" / "bt-seed0").exists()
+    assert B.main([*ARGS, "--references-only", "--results-dir", str(tmp_path)]) == {
+        k: v for k, v in refs.items() if k.endswith("_seed0")}
+
+
+def test_references_only_retrains_seed0_under_a_name_of_its_own_and_reproduces_the_benchmark(bench_run, catalog,
+                                                                                          tmp_path, capsys):
+    """One round further than the benchmark went (--iterations 2), seed 0's references are not the run's: they are
+    trained under bt-seed0, from the same Φ₀, seed and data, and round 1 there reproduces the benchmark's own round 1;
+    the run's own fidelity/ gets no round 2, and the printed hint names each seed's reference run."""
+    figures, _ = bench_run
+    refs = B.main([*ARGS, "--iterations", "2", "--seeds", "0", "1", "--references-only",
+                   "--results-dir", str(tmp_path)])
+    own = RunLayout(catalog / "runs", "toy", "bt")
+    seed0 = RunLayout(catalog / "runs", "toy", "bt-seed0")
+    for arm in ("control", "oracle"):
+        assert not (own.root / "fidelity" / arm / "round-02").exists()
+        assert (seed0.root / "fidelity" / arm / "round-02" / "metrics.json").is_file()
+        assert refs[f"{arm}_seed0"][1]["mcd_cm"] == pytest.approx(figures[f"mcd_{arm}_iter1"], abs=1e-3)
+        assert refs[f"{arm}_seed0"][0]["mcd_cm"] == pytest.approx(figures["mcd_loop_iter0"], abs=1e-3)
+        assert refs[f"{arm}_seed1"][1]["mcd_cm"] == pytest.approx(figures[f"mcd_{arm}_seed1_iter1"], abs=1e-3)
+        assert math.isfinite(refs[f"{arm}_seed1"][2]["mcd_cm"])
+    out = capsys.readouterr().out
+    assert "seed 0: compare a loop variant run at seed 0 with compare_loops.py --runs RUN:LABEL@bt-seed0" in out
+    assert "RUN:LABEL@bt-seed1" in out
 
 
 def test_the_fit_oracle_runs_on_the_bench_run(bench_run, catalog, tmp_path):
