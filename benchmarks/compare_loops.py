@@ -214,6 +214,14 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     p.add_argument("--results-dir", type=Path, default=None,
                    help="write the json there and leave RESULTS.md alone (default: benchmarks/results)")
     args = p.parse_args(argv)
+    labels = [label for _, label, _ in args.runs]
+    for label in labels:  # a run's figures are keyed by its label: two runs, or a run and an arm, must not share keys
+        if labels.count(label) > 1:
+            p.error(f"--runs: label {label!r} is given to {labels.count(label)} runs; name them apart (RUN:LABEL)")
+        if label in ARMS or label.startswith(("control_", "oracle_")):
+            p.error(f"--runs: label {label!r} would mix its figures with the benchmark's arms or a run's "
+                    f"references (mcd_{{control,oracle}}_<label>_iter<i>); choose one that is not 'loop', "
+                    f"'control', 'oracle' and starts with neither 'control_' nor 'oracle_'")
     bench_file = (args.results_dir or RESULTS_DIR) / f"{args.fidelity}.json"
     if not bench_file.is_file() and args.results_dir is not None:
         bench_file = RESULTS_DIR / f"{args.fidelity}.json"

@@ -111,7 +111,7 @@ def test_the_fits_bone_directions_against_the_hidden_poses(tmp_path, toy_rig):
     results.mkdir()
     (results / "fid.json").write_text(json.dumps({"mcd_control_iter1": 10.5, "mcd_oracle_iter1": 10.0}))
     asset = save_rig_glb(toy_rig, tmp_path / "toy.glb")
-    run = _fake_run(tmp_path / "runs", "loop", [10.9, 10.4])
+    run = _fake_run(tmp_path / "runs", "variant", [10.9, 10.4])
     (run / "manifest.json").write_text(json.dumps({"config": {"assets": {"asset": str(asset)}}}))
     theta, _ = sample_toy_natural_poses(2, seed=3, families=("gallop",))
     truth = tmp_path / "ground_truth.npz"
@@ -122,17 +122,17 @@ def test_the_fits_bone_directions_against_the_hidden_poses(tmp_path, toy_rig):
             {"sample_id": "b", "status": "ok", "excess_rotations": np.zeros(theta[1].size).tolist()},
             {"sample_id": "c", "status": "too_few_points", "excess_rotations": None}]
     pq.write_table(pa.Table.from_pylist(rows), run / "iter-01" / "fit" / "part-00000.parquet")
-    figures = C.main(["--fidelity", "fid", "--runs", "loop", "--truth", str(truth), "--storage-root",
+    figures = C.main(["--fidelity", "fid", "--runs", "variant", "--truth", str(truth), "--storage-root",
                       str(tmp_path / "runs"), "--iteration", "1", "--record-as", "v", "--results-dir", str(results)])
     truth_rows = {"a": {"excess_rotations": theta[0]}, "b": {"excess_rotations": theta[1]}}
     rest_b = pseudo_label_errors(rows[1:2], truth_rows, toy_rig)[0]["bone_err_deg"]
     rest_a = pseudo_label_errors([{**rows[0], "excess_rotations": rows[1]["excess_rotations"]}], truth_rows,
                                  toy_rig)[0]["bone_err_deg"]
     assert rest_a > 5 and rest_b > 5
-    assert figures["median_fit_bone_err_deg_loop_iter1"] == pytest.approx(round(rest_b / 2, 2), abs=0.006)
-    assert figures["median_rest_pose_bone_err_deg_loop_iter1"] == pytest.approx(round((rest_a + rest_b) / 2, 2),
+    assert figures["median_fit_bone_err_deg_variant_iter1"] == pytest.approx(round(rest_b / 2, 2), abs=0.006)
+    assert figures["median_rest_pose_bone_err_deg_variant_iter1"] == pytest.approx(round((rest_a + rest_b) / 2, 2),
                                                                                 abs=0.006)
-    assert figures["pct_bones_better_than_rest_loop_iter1"] == 50.0
+    assert figures["pct_bones_better_than_rest_variant_iter1"] == 50.0
 
 
 def test_a_missing_run_or_benchmark_is_named(tmp_path):
@@ -145,6 +145,25 @@ def test_a_missing_run_or_benchmark_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"never-ran/metrics.parquet: no such file"):
         C.main(["--fidelity", "fid", "--runs", "never-ran", "--storage-root", str(tmp_path), "--record-as", "v",
                 "--results-dir", str(results)])
+
+
+@pytest.mark.parametrize("runs, named", [
+    (["a:x", "b:x"], "label 'x' is given to 2 runs"),
+    (["a:x", "b"], None), (["a:x", "x"], "label 'x' is given to 2 runs"),  # a label defaults to the run's name
+    (["control"], "label 'control' would mix"), (["a:loop"], "label 'loop' would mix"),
+    (["a:control_s2@ref"], "label 'control_s2' would mix"), (["a:oracle-s2"], "label 'oracle_s2' would mix")])
+def test_labels_that_would_share_figure_keys_are_refused(tmp_path, capsys, runs, named):
+    """Every figure of a run is keyed by its label, the references' as mcd_{control,oracle}_<label>_iter<i>: two runs
+    with one label, or a label that is an arm or starts like a reference key, would overwrite figures silently."""
+    argv = ["--fidelity", "nope", "--storage-root", str(tmp_path), "--record-as", "v", "--results-dir", str(tmp_path)]
+    for spec in runs:
+        argv += ["--runs", spec]
+    with pytest.raises(SystemExit) as raised:
+        C.main(argv)
+    if named is None:  # accepted labels get as far as the missing record
+        assert "nope.json does not exist" in str(raised.value)
+    else:
+        assert raised.value.code == 2 and named in capsys.readouterr().err
 
 
 def test_variants_at_other_seeds_meet_their_own_seeds_control_and_oracle(tmp_path):
