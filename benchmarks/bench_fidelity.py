@@ -12,10 +12,11 @@ each evaluated on the same test split with the loop's own metrics (``bat3r_core.
 ``--ablations`` adds the paper's ablations of the loop, each a bootstrap run starting from the same Φ₀
 (``init_predictor``): no fitting regularisation, no view augmentation, no pseudo-label filter. ``--seeds 0 S ...``
 repeats the three arms from the same Φ₀ with each extra seed (``seed_arms``) and reports their mean, spread and the
-paired loop − control difference (``seed_figures``); with ``--references-only`` it trains only the extra seeds'
-control and oracle rounds (``references_of_seeds``; seed 0's too, when the benchmark's own are missing), the
-references ``compare_loops.py`` measures a loop variant run at those seeds against; ``evaluation_spread`` scores the loop's last test predictions
-with five evaluation seeds, the part of any spread between runs that is the evaluation's own sampling.
+paired loop − control difference (``seed_figures``); with ``--references-only`` it runs no loop and only trains
+the control and oracle rounds of each seed (``references_of_seeds``; seed 0's only when the benchmark's own are
+missing), the references ``compare_loops.py`` measures a loop variant run at those seeds against;
+``evaluation_spread`` scores the loop's last test predictions with five evaluation seeds, the part of any spread
+between runs that is the evaluation's own sampling.
 
 Two figures say what limits the headroom when there is little: the **map floors** (``map_floors``: the test mCD of
 exact point maps and of exact rest-pose maps at the run's crop resolution, the best any oracle and any control can
@@ -354,16 +355,16 @@ def seed_references(seed: int, preset: str, run_name: str, overrides: dict, cata
 def own_references(settings, iterations: int) -> dict[str, dict[int, dict]] | None:
     """Seed 0's control and oracle as the benchmark itself trained them, under the run (``fidelity/{control,oracle}``),
     when every round up to ``iterations`` is there (arms ``control_seed0``, ``oracle_seed0``, Φ₀'s test row at 0);
-    None otherwise, and nothing is trained or read."""
+    None otherwise (nothing is trained)."""
     root = settings.layout.root / "fidelity"
     if not all((root / arm / f"round-{i:02d}" / "metrics.json").is_file()
-               for arm in ("control", "oracle") for i in range(1, iterations + 1)):
+               for arm in SEED_ARMS[1:] for i in range(1, iterations + 1)):
         return None
     phi0_row = _test_rows(evaluation.read_metrics(settings.layout.root).to_pylist()).get(0)
     if phi0_row is None:
         return None
     return {f"{arm}_seed0": {0: phi0_row, **_reference_rounds(settings, arm, None, iterations, 0)}
-            for arm in ("control", "oracle")}  # every round is cached: nothing trains, data_fn is never called
+            for arm in SEED_ARMS[1:]}  # every round is cached: nothing trains, data_fn is never called
 
 
 def references_of_seeds(seeds: list[int], preset: str, run_name: str, overrides: dict, catalog: str | None,
