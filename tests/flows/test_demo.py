@@ -47,3 +47,21 @@ def test_control_verdict_points_at_the_same_compute_references(tmp_path):
     other = control_verdict(12.04, tmp_path, canonical_mcd=12.92)
     assert "started from another Φ₀ (13.11 cm; this run's: 12.92 cm): make bench-demo" in other[2]
     assert not any("another Φ₀" in line for line in control_verdict(12.04, tmp_path, canonical_mcd=13.12))
+
+
+def test_the_seeds_verdict_reads_the_demo_loops_seed_matched_record(tmp_path):
+    from flows.demo import SEEDS_RECORD, control_verdict, seeds_verdict
+
+    assert seeds_verdict(tmp_path) == []  # no record: no line
+    record = {"mcd_matched_mean": 11.1, "mcd_control_matched_mean": 11.3, "mcd_oracle_matched_mean": 10.5,
+              "gap_recovered_matched_mean": 0.25, "gap_to_control_cm_a": -0.1, "gap_to_control_cm_a_seed1": -0.3}
+    (tmp_path / f"{SEEDS_RECORD}.json").write_text(json.dumps(record))
+    (line,) = seeds_verdict(tmp_path)
+    assert "Over 2 seeds at this preset" in line and f"RESULTS.md, {SEEDS_RECORD})" in line
+    assert "loop 11.10, control 11.30, oracle 10.50 cm — ahead of the control, 25% of the control → oracle gap" in line
+    assert line in control_verdict(11.0, tmp_path)
+    behind = {**record, "mcd_matched_mean": 11.4, "gap_recovered_matched_mean": -0.125}
+    (tmp_path / f"{SEEDS_RECORD}.json").write_text(json.dumps(behind))
+    assert seeds_verdict(tmp_path)[0].endswith("loop 11.40, control 11.30, oracle 10.50 cm — at or behind the control.")
+    (tmp_path / f"{SEEDS_RECORD}.json").write_text(json.dumps({"mcd_matched_mean": 11.4}))  # not a seeds-mean record
+    assert seeds_verdict(tmp_path) == []

@@ -62,6 +62,13 @@ def test_preset_runs_one_refinement_iteration(preset, prefect_harness, catalog, 
     run = load_catalog(catalog / "data_catalog.yaml").runs[preset]
     assert config["features"]["extractor"] == run.features
     assert config["train"]["loss"] == run.train.get("loss", TrainConfig().loss)
+    # the preset's own fitting and training settings that the cut leaves alone reach the run, e.g. the demo's
+    # silhouette term and canonical replay
+    for section in ("fitting", "train"):
+        kept = {k: v for k, v in getattr(run, section).items() if f"{section}.{k}" not in CUT}
+        assert {k: config[section][k] for k in kept} == kept, section
+    if preset == "demo":
+        assert kept["canonical_replay"] > 0 and config["fitting"]["weight_silhouette"] > 0
     if preset != "paper":
         return
     # the catalog's features section reaches the flow (the model folder, the channels) and the robust loss is on
