@@ -292,8 +292,9 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             raise SystemExit(f"--seeds-mean: needs two or more runs with a test mCD and an oracle at iteration {last}, "
                              f"got {len(matched)}")
         final, control, oracle = (float(np.mean(c)) for c in zip(*matched))
-        figures.update(mcd_matched_mean=round(final, 3), mcd_control_matched_mean=round(control, 3),
-                       mcd_oracle_matched_mean=round(oracle, 3), headroom_matched_mean=round(oracle / control, 3))
+        figures.update(n_seeds_matched_mean=len(matched), mcd_matched_mean=round(final, 3),
+                       mcd_control_matched_mean=round(control, 3), mcd_oracle_matched_mean=round(oracle, 3),
+                       headroom_matched_mean=round(oracle / control, 3))
         recovered = gap_recovered(control, oracle, final)
         if np.isfinite(recovered):
             figures["gap_recovered_matched_mean"] = round(recovered, 3)

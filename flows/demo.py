@@ -89,23 +89,26 @@ SEEDS_RECORD = "demo_loop_seeds"
 
 def seeds_verdict(results_dir: Path, record: str = SEEDS_RECORD) -> list[str]:
     """The line on the demo preset's loop over several seeds, each measured against its own seed's control and
-    oracle, from ``results_dir/<record>.json`` (``mcd_{,control_,oracle_}matched_mean``,
+    oracle, from ``results_dir/<record>.json`` (``n_seeds_matched_mean``, ``mcd_{,control_,oracle_}matched_mean``,
     ``gap_recovered_matched_mean``); no line when there is no such record."""
     path = results_dir / f"{record}.json"
     if not path.is_file():
         return []
     d = json.loads(path.read_text())
-    keys = ("mcd_matched_mean", "mcd_control_matched_mean", "mcd_oracle_matched_mean")
+    keys = ("n_seeds_matched_mean", "mcd_matched_mean", "mcd_control_matched_mean", "mcd_oracle_matched_mean")
     if not all(k in d for k in keys):
         return []
-    loop, control, oracle = (float(d[k]) for k in keys)
-    seeds = sum(1 for k in d if k.startswith("gap_to_control_cm_"))
+    seeds = int(d["n_seeds_matched_mean"])
+    loop, control, oracle = (float(d[k]) for k in keys[1:])
     share = d.get("gap_recovered_matched_mean")
-    return [f"Over {seeds} seeds at this preset, each against its own control and oracle (benchmarks/RESULTS.md, "
-            f"{record}): loop {loop:.2f}, control {control:.2f}, oracle {oracle:.2f} cm"
-            + (f" — {'ahead of' if loop < control else 'at or behind'} the control"
-               + (f", {float(share):.0%} of the control → oracle gap (goal 50 %; the paper: 62–80 %)."
-                  if share is not None and loop < control else "."))]
+    line = (f"Over {seeds} seeds at this preset, each against its own control and oracle (benchmarks/RESULTS.md, "
+            f"{record}): loop {loop:.2f}, control {control:.2f}, oracle {oracle:.2f} cm")
+    if loop >= control:
+        return [line + " — at or behind the control."]
+    if share is None:
+        return [line + " — ahead of the control."]
+    return [line + f" — ahead of the control, {float(share):.0%} of the control → oracle gap (goal 50 %; the paper: "
+            "62–80 %)."]
 
 
 def record_refusal(preset: str, no_record: bool, resumed: bool) -> str | None:

@@ -191,6 +191,7 @@ def test_variants_at_other_seeds_meet_their_own_seeds_control_and_oracle(tmp_pat
     assert figures["gap_recovered_b"] == pytest.approx(-2 / 3, abs=1e-3)
     # means: variant 10.7, control 10.6, oracle 10.0 -> headroom 0.943, recovered -1/6
     assert figures["mcd_matched_mean"] == 10.7 and figures["mcd_control_matched_mean"] == 10.6
+    assert figures["n_seeds_matched_mean"] == 2
     assert figures["headroom_matched_mean"] == round(10.0 / 10.6, 3)
     assert figures["gap_recovered_matched_mean"] == pytest.approx(-1 / 6, abs=1e-3)
     assert "(seed-matched, ref1)" in json.loads((results / "v.json").read_text())["notes"]

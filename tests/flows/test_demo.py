@@ -54,10 +54,11 @@ def test_the_seeds_verdict_reads_the_demo_loops_seed_matched_record(tmp_path):
 
     assert seeds_verdict(tmp_path) == []  # no record: no line
     record = {"mcd_matched_mean": 11.1, "mcd_control_matched_mean": 11.3, "mcd_oracle_matched_mean": 10.5,
-              "gap_recovered_matched_mean": 0.25, "gap_to_control_cm_a": -0.1, "gap_to_control_cm_a_seed1": -0.3}
+              "gap_recovered_matched_mean": 0.25, "n_seeds_matched_mean": 3,
+              "gap_to_control_cm_a": -0.1, "gap_to_control_cm_a_seed1": -0.3}  # two gap keys: the count is recorded
     (tmp_path / f"{SEEDS_RECORD}.json").write_text(json.dumps(record))
     (line,) = seeds_verdict(tmp_path)
-    assert "Over 2 seeds at this preset" in line and f"RESULTS.md, {SEEDS_RECORD})" in line
+    assert "Over 3 seeds at this preset" in line and f"RESULTS.md, {SEEDS_RECORD})" in line
     assert "loop 11.10, control 11.30, oracle 10.50 cm — ahead of the control, 25% of the control → oracle gap" in line
     assert line in control_verdict(11.0, tmp_path)
     behind = {**record, "mcd_matched_mean": 11.4, "gap_recovered_matched_mean": -0.125}

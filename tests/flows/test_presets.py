@@ -68,7 +68,7 @@ def test_preset_runs_one_refinement_iteration(preset, prefect_harness, catalog, 
         kept = {k: v for k, v in getattr(run, section).items() if f"{section}.{k}" not in CUT}
         assert {k: config[section][k] for k in kept} == kept, section
     if preset == "demo":
-        assert kept["canonical_replay"] > 0 and config["fitting"]["weight_silhouette"] > 0
+        assert config["train"]["canonical_replay"] > 0 and config["fitting"]["weight_silhouette"] > 0
     if preset != "paper":
         return
     # the catalog's features section reaches the flow (the model folder, the channels) and the robust loss is on
