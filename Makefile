@@ -73,9 +73,10 @@ bench-demo: install
 # resumable: rerun after an interruption), then the fit diagnosis of its Φ₀ predictions. The paper's three ablations
 # add ~20 min each: `make bench-fidelity BENCH_FIDELITY_ARGS=--ablations` (~2 h 20 min on 2 cores).
 BENCH_FIDELITY_ARGS ?=
+BENCH_CATEGORY ?= toy_wide
 bench-fidelity: install
-	PREFECT_SERVER_ANALYTICS_ENABLED=false $(PY) benchmarks/bench_fidelity.py --preset bench --run-name bench $(BENCH_FIDELITY_ARGS)
-	$(PY) benchmarks/bench_fit_oracle.py --run-name bench --error-scales 0.25 0.5 --record-as fit_oracle_bench
+	PREFECT_SERVER_ANALYTICS_ENABLED=false $(PY) benchmarks/bench_fidelity.py --category $(BENCH_CATEGORY) --preset bench --run-name bench $(BENCH_FIDELITY_ARGS)
+	$(PY) benchmarks/bench_fit_oracle.py --category $(BENCH_CATEGORY) --run-name bench --error-scales 0.25 0.5 --record-as fit_oracle_bench
 
 # A local Prefect server (127.0.0.1), the process work pool, the deployments of deploy/prefect.yaml and a worker.
 server: install

@@ -24,7 +24,10 @@ Equal compute: the control (canonical renders), the oracle (the collection's ima
 and, once its renders are packed (``pack --loop-iteration 1`` after the flow ran that iteration's data stages), the
 loop round are each trained for the same number of warm-started steps from the same Φ₀. ``train`` measures the
 machine's step rate first and sizes Φ₀'s and the rounds' steps to ``--budget-s`` unless ``--phi0-steps`` and
-``--round-steps`` fix them; the steps used are recorded in ``timings.json`` beside the predictors.
+``--round-steps`` fix them; the steps used are recorded in ``timings.json`` beside the predictors. A run with
+``train.canonical_replay`` > 0 packs iteration 0's canonical renders beside the loop's (set ``replay``), and the
+loop round trains on both mixed at that ratio, as the flow's iteration does. ``--category`` (default ``toy``) names
+the run's category, e.g. ``toy_wide``, the category of ``make bench-fidelity``.
 """
 from __future__ import annotations
 
@@ -53,6 +56,9 @@ PACK_FORMAT = 1
 MAX_STORAGE_ERROR_M = 1e-3
 """A packed coordinate may differ from the shard's by at most this much (float16 of values below 2 m: ≤ 0.5 mm)."""
 _MAPS = ("P", "Q")
+REPLAY = "replay"
+"""The packed set of a loop pack that holds iteration 0's canonical renders, when the run's ``train.canonical_replay``
+is > 0: the loop round trains on its renders mixed with these, as the flow does; it is no round of its own."""
 
 
 # ------------------------------------------------------------------------------------------------------ the codec
@@ -147,7 +153,7 @@ def _pack(args: argparse.Namespace) -> None:
     from bat3r_core.rig_io import load_rig
     from flows._settings import recorded_run
 
-    settings, parameters = recorded_run("toy", args.run_name)
+    settings, parameters = recorded_run(args.category, args.run_name)
     out = Path(args.out)
     sets: dict[str, Path] = {}
     if args.loop_iteration is None:
@@ -156,6 +162,8 @@ def _pack(args: argparse.Namespace) -> None:
                                          settings.layout.root / "fidelity" / "oracle")
     else:
         sets[f"loop{args.loop_iteration}"] = settings.layout.stage_dir(args.loop_iteration, "render")
+        if settings.train.canonical_replay > 0:  # the loop round also trains on iteration 0's renders, as the flow
+            sets[REPLAY] = settings.layout.stage_dir(0, "render")
     if out.exists():
         shutil.rmtree(out)
     counts = {}
@@ -178,9 +186,6 @@ def _configs(plan: dict, steps: int, warm_start: bool):
     model = ModelConfig(**plan["model"])
     train = {**plan["train"], **plan.get("train_overrides", {})}
     train["betas"] = tuple(train["betas"])
-    if float(train.get("canonical_replay", 0.0)) > 0:  # the rounds train on one pack each
-        raise ValueError(f"plan.json: gpu_rounds trains each round on its own renders only, got train."
-                         f"canonical_replay = {train['canonical_replay']} (run that loop through the flow)")
     return model, TrainConfig(**{**train, "steps": int(steps), "warm_start": warm_start})
 
 
@@ -213,13 +218,19 @@ def save_half(src: Path, dst: Path) -> Path:
 
 
 def train_one(plan: dict, data: Path, out: Path, steps: int, init_from: Path | None,
-              until_step: int | None = None) -> tuple[Path, float]:
-    """Train (or resume) one model on ``data``; returns its predictor (or checkpoint) and the seconds it took."""
+              until_step: int | None = None, replay: Path | None = None) -> tuple[Path, float]:
+    """Train (or resume) one model on ``data`` (mixed with ``replay``'s canonical renders at the plan's
+    ``train.canonical_replay``, as the flow's refinement iterations are); returns its predictor (or checkpoint) and
+    the seconds it took."""
+    from bat3r_core.predictor.data import with_canonical_replay
     from bat3r_core.predictor.train import Trainer
 
     model, train = _configs(plan, steps, warm_start=init_from is not None)
+    dataset = _dataset(plan, data)
+    if replay is not None:
+        dataset = with_canonical_replay(dataset, _dataset(plan, replay), train.canonical_replay)
     t0 = time.perf_counter()
-    path = Trainer(_dataset(plan, data), model, train, out, init_from=init_from).train(until_step)
+    path = Trainer(dataset, model, train, out, init_from=init_from).train(until_step)
     return path, time.perf_counter() - t0
 
 
@@ -272,13 +283,15 @@ def _train(args: argparse.Namespace) -> None:
         timings["phi0"] = {"steps": phi0_steps, "seconds": round(secs, 1), "steps_per_s": round(phi0_steps / secs, 1)}
         phi0 = save_half(full, out / "phi0.pt")
         print(f"Φ₀: {phi0_steps} steps in {secs:.0f} s", flush=True)
-    rounds = args.rounds or ["control" if name == "canonical" else name for name in plan["samples"]]
+    rounds = args.rounds or ["control" if name == "canonical" else name for name in plan["samples"] if name != REPLAY]
     procs = {}
     for name in rounds:
         data = work / ("canonical" if name == "control" else name)
         cmd = [sys.executable, __file__, "train-one", "--plan", str(plan_file), "--data", str(data),
                "--out", str(work / name), "--steps", str(round_steps), "--init-from", str(phi0),
                "--timing", str(out / f"{name}.timing.json")]
+        if name.startswith("loop") and REPLAY in plan["samples"]:
+            cmd += ["--replay", str(work / REPLAY)]
         procs[name] = subprocess.Popen(cmd)
     for name, proc in procs.items():
         if proc.wait() != 0:
@@ -296,7 +309,8 @@ def _train(args: argparse.Namespace) -> None:
 def _train_one_cmd(args: argparse.Namespace) -> None:
     plan = json.loads(Path(args.plan).read_text())
     path, secs = train_one(plan, Path(args.data), Path(args.out), args.steps,
-                           Path(args.init_from) if args.init_from else None)
+                           Path(args.init_from) if args.init_from else None,
+                           replay=Path(args.replay) if args.replay else None)
     Path(args.timing).write_text(json.dumps({"steps": args.steps, "seconds": round(secs, 1),
                                              "steps_per_s": round(args.steps / secs, 1)}))
 
@@ -307,7 +321,7 @@ def _evaluate(args: argparse.Namespace) -> None:
 
     from flows._settings import recorded_run
 
-    settings, parameters = recorded_run("toy", args.run_name)
+    settings, parameters = recorded_run(args.category, args.run_name)
     seed = int(parameters["seed"])
     folder = Path(args.predictors)
     rows = {}
@@ -354,7 +368,7 @@ def _record(args: argparse.Namespace) -> dict:
     from bat3r_core.rig_io import load_rig
     from flows._settings import recorded_run
 
-    settings, parameters = recorded_run("toy", args.run_name)
+    settings, parameters = recorded_run(args.category, args.run_name)
     floors, tests = read_evaluations(args.evaluations)
     figures: dict[str, float] = {"iterations": 1, "crop_px": settings.model.resolution, **floors}
     for name, row in tests.items():
@@ -384,7 +398,7 @@ def _record(args: argparse.Namespace) -> dict:
         for name in ("control", "oracle", "loop1"):
             if name in t:
                 figures[f"{ARMS[name][0]}_round_steps_per_s"] = t[name]["steps_per_s"]
-    loop_settings, _ = recorded_run("toy", args.loop_run)
+    loop_settings, _ = recorded_run(args.category, args.loop_run)
     rows = shards.read_table(loop_settings.layout.stage_dir(1, "fit")).to_pylist()
     gt = evaluation_truth.load_ground_truth(Path(loop_settings.collection["ground_truth"]) / "ground_truth.npz")
     quality = pose_quality(rows, gt, load_rig(loop_settings.assets.asset))
@@ -403,7 +417,7 @@ def _record(args: argparse.Namespace) -> dict:
                  + (f"; the filter's kept half beats it with precision {figures['filter_precision']:.2f} (goal >= 0.8: "
                     f"{'met' if figures['filter_precision'] >= 0.8 else 'NOT met'})" if "filter_precision" in figures
                     else ""))
-    notes = (f"toy at {settings.model.resolution}x{settings.model.resolution}, run {args.run_name!r} (bench preset, "
+    notes = (f"{args.category} at {settings.model.resolution}x{settings.model.resolution}, run {args.run_name!r} (bench preset, "
              f"overrides {parameters['overrides']}); the data (canonical "
              f"renders, collection, test split, the oracle's true labels, the loop's renders of its filtered fits, "
              f"run {args.loop_run!r}) made on this machine, every model trained on {', '.join(sorted(devices))} by "
@@ -426,7 +440,7 @@ def _compare(args: argparse.Namespace) -> dict:
 
     from flows._settings import recorded_run
 
-    settings, _ = recorded_run("toy", args.run_name)
+    settings, _ = recorded_run(args.category, args.run_name)
     _, tests = read_evaluations(args.evaluations)
     figures: dict[str, float] = {}
     for name, row in tests.items():
@@ -443,6 +457,7 @@ def main(argv: list[str] | None = None) -> None:
     sub = p.add_subparsers(dest="cmd", required=True)
     pk = sub.add_parser("pack", help="compact copy of a run's training sets and plan.json (where the run is)")
     pk.add_argument("--run-name", required=True)
+    pk.add_argument("--category", default="toy", help="the run's category (default: toy; e.g. toy_wide)")
     pk.add_argument("--out", required=True)
     pk.add_argument("--loop-iteration", type=int, default=None,
                     help="pack the loop's renders of this iteration instead of the canonical and oracle sets")
@@ -466,9 +481,11 @@ def main(argv: list[str] | None = None) -> None:
     one.add_argument("--steps", type=int, required=True)
     one.add_argument("--init-from", default=None)
     one.add_argument("--timing", required=True)
+    one.add_argument("--replay", default=None, help="canonical renders mixed in (train.canonical_replay)")
     one.set_defaults(func=_train_one_cmd)
     ev = sub.add_parser("evaluate", help="test metrics of trained predictors (where the run is)")
     ev.add_argument("--run-name", required=True)
+    ev.add_argument("--category", default="toy", help="the run's category (default: toy; e.g. toy_wide)")
     ev.add_argument("--predictors", required=True, help="folder of <name>.pt")
     ev.add_argument("--names", nargs="+", default=["phi0", "control", "oracle"])
     ev.add_argument("--tag", default="call1")
@@ -476,6 +493,7 @@ def main(argv: list[str] | None = None) -> None:
     ev.set_defaults(func=_evaluate)
     rc = sub.add_parser("record", help="results/<record-as>.json and RESULTS.md from evaluations and timings")
     rc.add_argument("--run-name", required=True)
+    rc.add_argument("--category", default="toy", help="the run's category (default: toy; e.g. toy_wide)")
     rc.add_argument("--loop-run", required=True, help="the bootstrap run whose iteration 1 made the loop's data")
     rc.add_argument("--evaluations", nargs="+", required=True, help="evaluate --json files")
     rc.add_argument("--timings", nargs="+", required=True, help="timings.json files of the train calls")
@@ -484,6 +502,7 @@ def main(argv: list[str] | None = None) -> None:
     rc.set_defaults(func=_record)
     cp = sub.add_parser("compare", help="results/<record-as>.json: predictors of evaluate --json files side by side")
     cp.add_argument("--run-name", required=True)
+    cp.add_argument("--category", default="toy", help="the run's category (default: toy; e.g. toy_wide)")
     cp.add_argument("--evaluations", nargs="+", required=True)
     cp.add_argument("--record-as", type=record_name, required=True)
     cp.add_argument("--notes", default="")

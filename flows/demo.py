@@ -73,9 +73,12 @@ def control_verdict(last_mcd: float, results_dir: Path = ROOT / "benchmarks" / "
         n = int(d.get("iterations", 0))
         keys = [f"mcd_{a}_iter{n}" for a in ("loop", "control", "oracle")]
         if all(k in d for k in keys):
-            lines.append("The method's evidence at a larger scale is make bench-fidelity (the bench preset, equal "
-                         "compute, one Φ₀; benchmarks/RESULTS.md, fidelity): loop {:.2f}, control {:.2f}, oracle "
-                         "{:.2f} cm.".format(*(d[k] for k in keys)))
+            line = ("The method's evidence at a larger scale is make bench-fidelity (the bench preset, equal "
+                    "compute, one Φ₀; benchmarks/RESULTS.md, fidelity): loop {:.2f}, control {:.2f}, oracle "
+                    "{:.2f} cm".format(*(d[k] for k in keys)))
+            if "loop_gap_recovered" in d:
+                line += f", {float(d['loop_gap_recovered']):.0%} of the control → oracle gap"
+            lines.append(line + ".")
     else:
         lines.append("The method's evidence at a larger scale is make bench-fidelity: loop, control and oracle at "
                      "equal compute.")

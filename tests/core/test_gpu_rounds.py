@@ -92,13 +92,23 @@ def test_train_runs_phi0_and_equal_step_rounds_from_it(tmp_path):
     again = torch.cat([p.detach().flatten() for p in load_predictor(tmp_path / "out2" / "oracle.pt", "cpu")[0]
                        .parameters()])
     assert torch.allclose(again, wo, atol=1e-6)  # same Φ₀, data, seed and steps: the same round on CPU
-    # a loop with canonical replay mixes two training sets: the rounds cannot reproduce it, and say so
-    plan["train_overrides"] = {"canonical_replay": 1.0}
-    (pack / "plan.json").write_text(json.dumps(plan))
-    with pytest.raises(ValueError, match="plan.json: gpu_rounds trains each round on its own renders only, got "
-                                         "train.canonical_replay = 1.0"):
-        gpu_rounds.main(["train", "--pack", str(pack), "--out", str(tmp_path / "out3"), "--work",
-                         str(tmp_path / "w3"), "--phi0", str(out / "phi0.pt"), "--round-steps", "2"])
+    # a loop pack of a run with canonical replay carries the canonical renders as set `replay`: the loop round trains
+    # on its renders mixed with as many canonical ones (train.canonical_replay = 1), as the flow's iteration does,
+    # and the replayed set is no round of its own
+    loop_pack = tmp_path / "loop_pack"
+    for name, folder in (("loop1", "posed"), (gpu_rounds.REPLAY, "canonical")):
+        gpu_rounds.pack_folder(tmp_path / folder, loop_pack / name)
+    loop_plan = {**plan, "samples": {"loop1": 8, gpu_rounds.REPLAY: 8},
+                 "train": {**plan["train"], "canonical_replay": 1.0}}
+    (loop_pack / "plan.json").write_text(json.dumps(loop_plan))
+    gpu_rounds.main(["train", "--pack", str(loop_pack), "--out", str(tmp_path / "out3"), "--work",
+                     str(tmp_path / "w3"), "--phi0", str(out / "phi0.pt"), "--round-steps", "2"])
+    assert sorted(p.name for p in (tmp_path / "out3").iterdir()) == ["loop1.pt", "timings.json"]
+    state = torch.load(tmp_path / "w3" / "loop1" / "checkpoint.pt", map_location="cpu", weights_only=True)
+    assert state["n_samples"] == 16  # an epoch: the 8 loop renders and 8 canonical ones
+    wl = torch.cat([p.detach().flatten() for p in load_predictor(tmp_path / "out3" / "loop1.pt", "cpu")[0]
+                    .parameters()])
+    assert not torch.allclose(wl, wo, atol=1e-6)  # the same renders without the canonical ones train the oracle's
 
 
 def test_device_dataset_gives_the_source_batches_and_the_same_training(tmp_path):

@@ -357,11 +357,17 @@ def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_ru
             "--round-steps", "2"])
     G.main(["pack", "--run-name", "bt", "--loop-iteration", "1", "--out", str(p2)])
     loop_samples = sum(1 for r in shards.read_table(layout.stage_dir(1, "render")).to_pylist() if r["status"] == "ok")
-    assert json.loads((p2 / "plan.json").read_text())["samples"] == {"loop1": loop_samples}
+    # the bench preset replays the canonical renders in each refinement iteration: the loop pack carries them too
+    assert json.loads((p2 / "plan.json").read_text())["samples"] == {"loop1": loop_samples, "replay": canonical}
     G.main(["train", "--pack", str(p2), "--out", str(o2), "--work", str(tmp_path / "w2"), "--phi0",
             str(o1 / "phi0.pt"), "--round-steps", "2"])
     # every round starts from the float16 Φ₀ that came back, and takes the same steps
     t1, t2 = (json.loads((o / "timings.json").read_text()) for o in (o1, o2))
+    assert set(t2) >= {"loop1"} and "replay" not in t2  # the replayed renders are no round of their own
+    # the loop round trained on its renders mixed with as many canonical ones (train.canonical_replay = 1), as the
+    # flow's iteration 1 did
+    loop_state = torch.load(tmp_path / "w2" / "loop1" / "checkpoint.pt", map_location="cpu", weights_only=True)
+    assert loop_state["n_samples"] == loop_samples + min(canonical, loop_samples)
     assert t1["phi0"]["steps"] == 3 and t1["control"]["steps"] == t1["oracle"]["steps"] == t2["loop1"]["steps"] == 2
     for o, name in ((o1, "phi0"), (o1, "oracle"), (o2, "loop1")):
         state = torch.load(o / f"{name}.pt", map_location="cpu", weights_only=True)
@@ -372,7 +378,7 @@ def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_ru
     G.main(["evaluate", "--run-name", "bt", "--predictors", str(o2), "--names", "loop1", "--tag", "call2",
             "--json", str(e2)])
     figures = G._record(G.argparse.Namespace(
-        run_name="bt", loop_run="bt", evaluations=[str(e1), str(e2)], timings=[str(o1 / "timings.json"),
+        category="toy", run_name="bt", loop_run="bt", evaluations=[str(e1), str(e2)], timings=[str(o1 / "timings.json"),
                                                                                str(o2 / "timings.json")],
         record_as="gpu_rounds_tiny", results_dir=out))
     rows = {**json.loads(e1.read_text()), **json.loads(e2.read_text())}
@@ -396,8 +402,8 @@ def test_gpu_rounds_runs_the_documented_split_workflow_on_the_bench_run(bench_ru
     recorded = json.loads((out / "gpu_rounds_tiny.json").read_text())
     assert recorded["round_steps"] == 2 and "headroom oracle/control" in recorded["notes"]
     # compare: predictors of evaluation files side by side, with the mean lateral shift of each
-    side = G._compare(G.argparse.Namespace(run_name="bt", evaluations=[str(e1)], record_as="gpu_rounds_cmp",
-                                           notes="tiny", results_dir=out))
+    side = G._compare(G.argparse.Namespace(category="toy", run_name="bt", evaluations=[str(e1)],
+                                           record_as="gpu_rounds_cmp", notes="tiny", results_dir=out))
     assert side["mcd_oracle"] == round(rows["oracle"]["mcd_cm"], 3) and "lateral_bias_y_cm_control" in side
     assert json.loads((out / "gpu_rounds_cmp.json").read_text())["notes"] == "tiny"
 

@@ -39,7 +39,12 @@ def test_control_verdict_points_at_the_same_compute_references(tmp_path):
         {"iterations": 2, "mcd_loop_iter2": 7.1, "mcd_control_iter2": 8.0, "mcd_oracle_iter2": 6.0}))
     lines = control_verdict(11.48, tmp_path)
     assert "control 10.15 cm, oracle (true labels) 9.96 cm; this run's loop 11.48 cm — at or behind" in lines[1]
-    assert "loop 7.10, control 8.00, oracle 6.00 cm" in lines[2]
+    assert lines[2].endswith("loop 7.10, control 8.00, oracle 6.00 cm.")
+    (tmp_path / "fidelity.json").write_text(json.dumps(
+        {"iterations": 2, "mcd_loop_iter2": 7.1, "mcd_control_iter2": 8.0, "mcd_oracle_iter2": 6.0,
+         "loop_gap_recovered": 0.45}))
+    assert control_verdict(11.48, tmp_path)[2].endswith("loop 7.10, control 8.00, oracle 6.00 cm, 45% of the "
+                                                        "control → oracle gap.")
     assert "ahead of the control" in control_verdict(9.0, tmp_path)[1]
     # references measured from another Φ₀ say so; from this run's Φ₀ they do not
     (tmp_path / "demo_control.json").write_text(json.dumps(
