@@ -1,7 +1,8 @@
 """``make bench-fidelity``: does the bootstrap loop beat its same-compute control, and by how much of the oracle's gap?
 
-From one Φ₀ (the canonical initialisation of the ``bench`` preset on the toy), three arms at equal training compute,
-each evaluated on the same test split with the loop's own metrics (``bat3r_core.evaluation``):
+From one Φ₀ (the canonical initialisation of the ``bench`` preset; ``make bench-fidelity`` runs it on ``toy_wide``),
+three arms at equal training compute, each evaluated on the same test split with the loop's own metrics
+(``bat3r_core.evaluation``):
 
 * **loop**: the bootstrap flow itself (``flows.bootstrap.bootstrap``), ``iterations`` refinement iterations;
 * **control**: Φ₀ trained on for the same number of warm-started rounds of the same schedule on its canonical
@@ -35,8 +36,9 @@ Results: ``benchmarks/results/<record-as>.json`` (test mCD, % > 5 cm and ΔR per
     python benchmarks/bench_fidelity.py [--preset bench] [--run-name bench] [--ablations] [--seeds 0 1 2]
                                         [--references-only] [--set KEY=VALUE ...]
 
-Measured: 48 min on 2 AMD EPYC cores (65 min on 2 Intel Xeon cores) at the ``bench`` preset without ablations
-(collection and test split rendered from scratch); each ablation adds about 20 min, ``--oracle-sizes 1536`` 14 min.
+Measured: 75 min on 2 AMD EPYC cores at the ``bench`` preset on ``toy_wide`` (three iterations) without ablations,
+the collection and test split rendered from scratch (48 min for the two-iteration paper-recipe preset of 2 December
+on ``toy``); each ablation adds about one loop's time (~30 min), ``--oracle-sizes 1536`` about 14 min.
 """
 from __future__ import annotations
 
@@ -75,6 +77,9 @@ HEADROOM_GOAL = 0.75
 """The benchmark means something only when the oracle's last mCD is at most this fraction of the control's."""
 RECOVERY_GOAL = 0.5
 """The loop's last iteration must recover at least this fraction of the control → oracle gap in test mCD."""
+MIN_GAP_CM = 0.25
+"""Below the headroom goal, the loop's share of a control → oracle gap narrower than this is not reported as a figure
+of merit: one arm moves by up to about this much between training seeds (README, "How far apart two runs must be")."""
 
 UNDERFIT_RATIO = 0.9
 """An oracle whose mCD on its own training images is at least this fraction of its test mCD under-fits them."""
@@ -449,16 +454,20 @@ def ablation_ordering(full: float, no_aug: float | None, no_reg: float | None) -
 
 def verdict_lines(figures: dict[str, float]) -> list[str]:
     """The benchmark's verdicts from its recorded figures (``fidelity.json``): headroom, the loop's share of the
-    control → oracle gap (only meaningful with headroom), and the paper's ablation ordering where measured."""
+    control → oracle gap (reported with headroom, or without it when the gap is at least ``MIN_GAP_CM``), and the paper's ablation ordering where measured."""
     n = int(figures["iterations"])
     loop, control, oracle = (figures[f"mcd_{a}_iter{n}"] for a in ("loop", "control", "oracle"))
     headroom = oracle / control
     lines = [f"headroom oracle/control {headroom:.3f} (goal <= {HEADROOM_GOAL}: "
              f"{'met' if headroom <= HEADROOM_GOAL else 'NOT met'}; oracle {oracle:.2f} cm, control {control:.2f} cm)"]
     recovered = gap_recovered(control, oracle, loop)
-    if headroom <= HEADROOM_GOAL:
+    if headroom <= HEADROOM_GOAL or control - oracle >= MIN_GAP_CM:
         lines.append(f"the loop ({loop:.2f} cm) recovers {recovered:.0%} of the control -> oracle gap (goal >= "
-                     f"{RECOVERY_GOAL:.0%}: {'met' if recovered >= RECOVERY_GOAL else 'NOT met'})")
+                     f"{RECOVERY_GOAL:.0%}: {'met' if recovered >= RECOVERY_GOAL else 'NOT met'})"
+                     + ("" if headroom <= HEADROOM_GOAL else
+                        f", of a gap of {control - oracle:.2f} cm, narrower than the headroom goal asks for: the loop "
+                        "closes that share of what perfect pseudo-labels give at this scale, which is not yet the "
+                        "paper's gain"))
     else:
         lines.append(f"the loop's share of the control -> oracle gap is not meaningful without headroom (gap "
                      f"{control - oracle:.2f} cm); the loop ({loop:.2f} cm) is "

@@ -15,7 +15,7 @@ and collection crop of the toy. The recovered camera itself (``"recovered"``) ha
 of the crop it was fitted in: its posed map's x, y are measured from another axis, and the network, which does not
 see the intrinsics, is taught two answers for the same picture. Measured at 64×64: a third of the loop's renders
 had the principal point 6.5 px from where every other training render has it, and the loop's test predictions were
-shifted by 9.9 cm vertically on average (README, "At 64×64").
+shifted by 9.9 cm vertically on average (docs/fidelity_history.md, "At 64×64").
 
 The world of the jobs is the canonical frame: the fitted mesh is the rig posed by θ with unit bone scales and an
 identity global similarity; cameras are world → camera.
