@@ -454,7 +454,8 @@ def ablation_ordering(full: float, no_aug: float | None, no_reg: float | None) -
 
 def verdict_lines(figures: dict[str, float]) -> list[str]:
     """The benchmark's verdicts from its recorded figures (``fidelity.json``): headroom, the loop's share of the
-    control → oracle gap (reported with headroom, or without it when the gap is at least ``MIN_GAP_CM``), and the paper's ablation ordering where measured."""
+    control → oracle gap (reported with headroom, or without it when the gap is at least ``MIN_GAP_CM``), and the
+    paper's ablation ordering where measured."""
     n = int(figures["iterations"])
     loop, control, oracle = (figures[f"mcd_{a}_iter{n}"] for a in ("loop", "control", "oracle"))
     headroom = oracle / control
