@@ -61,8 +61,6 @@ def test_bench_demo_records_under_names_of_its_own():
 def test_the_bench_preset_carries_what_the_benchmark_measured():
     """The preset make bench-fidelity runs: the silhouette term and canonical replay (the variant whose loop
     recovered half the control → oracle gap, README), for three iterations."""
-    import yaml
-
-    bench = yaml.safe_load((ROOT / "data_catalog.yaml").read_text())["runs"]["bench"]
-    assert bench["iterations"] == 3
-    assert bench["fitting"]["weight_silhouette"] == 16.0 and bench["train"]["canonical_replay"] == 1.0
+    bench = load_catalog(ROOT / "data_catalog.yaml").runs["bench"]
+    assert bench.iterations == 3
+    assert bench.fitting["weight_silhouette"] == 16.0 and bench.train["canonical_replay"] == 1.0

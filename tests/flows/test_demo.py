@@ -45,6 +45,14 @@ def test_control_verdict_points_at_the_same_compute_references(tmp_path):
          "loop_gap_recovered": 0.45}))
     assert control_verdict(11.48, tmp_path)[2].endswith("loop 7.10, control 8.00, oracle 6.00 cm, 45% of the "
                                                         "control → oracle gap.")
+    # a narrow gap (oracle / control above the 0.75) says so
+    (tmp_path / "fidelity.json").write_text(json.dumps(
+        {"iterations": 3, "mcd_loop_iter3": 10.30, "mcd_control_iter3": 10.97, "mcd_oracle_iter3": 10.21,
+         "loop_gap_recovered": 0.89}))
+    assert control_verdict(11.48, tmp_path)[2].endswith("89% of the control → oracle gap; but oracle / control is "
+                                                        "0.931, short of the 0.75 that would make it the paper's "
+                                                        "gain: even true labels gain little over the rest pose's at "
+                                                        "that scale.")
     assert "ahead of the control" in control_verdict(9.0, tmp_path)[1]
     # references measured from another Φ₀ say so; from this run's Φ₀ they do not
     (tmp_path / "demo_control.json").write_text(json.dumps(
