@@ -448,8 +448,12 @@ def ablation_ordering(full: float, no_aug: float | None, no_reg: float | None) -
     if no_aug is None or no_reg is None:
         return "not measured (run with --ablations)"
     holds = full < no_aug < no_reg
+    pairs = (("the full loop", full, "no view augmentation", no_aug),
+             ("no view augmentation", no_aug, "no fitting regularisation", no_reg),
+             ("the full loop", full, "no fitting regularisation", no_reg))
+    reversed_ = [f"{a} ({x:.2f}) is not ahead of {b} ({y:.2f})" for a, x, b, y in pairs if not x < y]
     return (f"{'holds' if holds else 'does not hold'}: full {full:.2f} cm, no view augmentation {no_aug:.2f} cm, "
-            f"no fitting regularisation {no_reg:.2f} cm")
+            f"no fitting regularisation {no_reg:.2f} cm" + ("" if holds else " (" + "; ".join(reversed_) + ")"))
 
 
 def verdict_lines(figures: dict[str, float]) -> list[str]:

@@ -246,6 +246,11 @@ def test_gap_recovered_and_ablation_ordering():
     assert math.isnan(B.gap_recovered(10.0, 10.5, 9.0))  # no gap: the oracle is no better than the control
     assert B.ablation_ordering(5.0, 6.0, 7.0).startswith("holds")
     assert B.ablation_ordering(5.0, 7.0, 6.0).startswith("does not hold")
+    # which pair is out of the paper's order
+    assert B.ablation_ordering(5.0, 7.0, 6.0).endswith(
+        "(no view augmentation (7.00) is not ahead of no fitting regularisation (6.00))")
+    assert B.ablation_ordering(6.5, 6.0, 7.0).endswith("(the full loop (6.50) is not ahead of no view augmentation "
+                                                       "(6.00))")
     assert B.ablation_ordering(5.0, None, 7.0).startswith("not measured")
 
 
