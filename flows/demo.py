@@ -79,6 +79,9 @@ def control_verdict(last_mcd: float, results_dir: Path = ROOT / "benchmarks" / "
                     f"oracle {oracle:.2f} cm")
             if "loop_gap_recovered" in d:
                 line += f", {float(d['loop_gap_recovered']):.0%} of the control → oracle gap"
+                if "loop_gap_recovered_seeds_mean" in d and "seeds" in d:
+                    line += (f" ({float(d['loop_gap_recovered_seeds_mean']):.0%} in the mean of {int(d['seeds'])} "
+                             "seeds)")
             if oracle / control > 0.75:
                 line += (f"; but oracle / control is {oracle / control:.3f}, short of the 0.75 that would make it the "
                          "paper's gain: even true labels gain little over the rest pose's at that scale")

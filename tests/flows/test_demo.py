@@ -53,6 +53,10 @@ def test_control_verdict_points_at_the_same_compute_references(tmp_path):
                                                         "0.931, short of the 0.75 that would make it the paper's "
                                                         "gain: even true labels gain little over the rest pose's at "
                                                         "that scale.")
+    (tmp_path / "fidelity.json").write_text(json.dumps(
+        {"iterations": 3, "mcd_loop_iter3": 10.30, "mcd_control_iter3": 10.97, "mcd_oracle_iter3": 10.21,
+         "loop_gap_recovered": 0.89, "seeds": 2, "loop_gap_recovered_seeds_mean": 0.7}))
+    assert "89% of the control → oracle gap (70% in the mean of 2 seeds); but" in control_verdict(11.48, tmp_path)[2]
     assert "ahead of the control" in control_verdict(9.0, tmp_path)[1]
     # references measured from another Φ₀ say so; from this run's Φ₀ they do not
     (tmp_path / "demo_control.json").write_text(json.dumps(
