@@ -433,7 +433,16 @@ def seed_line(figures: dict[str, float]) -> str | None:
             f"ahead in {int(f['loop_ahead_of_control_seeds'])} of {n} seeds), headroom of the means "
             f"{f['headroom_seeds_mean']:.3f}"
             + (f", share of the gap recovered {f['loop_gap_recovered_seeds_mean']:.0%}"
-               if "loop_gap_recovered_seeds_mean" in f and f["headroom_seeds_mean"] <= HEADROOM_GOAL else ""))
+               + ("" if f["headroom_seeds_mean"] <= HEADROOM_GOAL else
+                  f" (of a gap of {f['mcd_control_seeds_mean'] - f['mcd_oracle_seeds_mean']:.2f} cm)")
+               if "loop_gap_recovered_seeds_mean" in f and _gap_meaningful(
+                   f["mcd_control_seeds_mean"], f["mcd_oracle_seeds_mean"]) else ""))
+
+
+def _gap_meaningful(control: float, oracle: float) -> bool:
+    """Whether the loop's share of a control → oracle gap is a figure of merit: with the headroom goal met, or over
+    a gap of at least ``MIN_GAP_CM`` (about one arm's seed spread)."""
+    return oracle / control <= HEADROOM_GOAL or control - oracle >= MIN_GAP_CM
 
 
 def gap_recovered(control: float, oracle: float, loop: float) -> float:
@@ -466,7 +475,7 @@ def verdict_lines(figures: dict[str, float]) -> list[str]:
     lines = [f"headroom oracle/control {headroom:.3f} (goal <= {HEADROOM_GOAL}: "
              f"{'met' if headroom <= HEADROOM_GOAL else 'NOT met'}; oracle {oracle:.2f} cm, control {control:.2f} cm)"]
     recovered = gap_recovered(control, oracle, loop)
-    if headroom <= HEADROOM_GOAL or control - oracle >= MIN_GAP_CM:
+    if _gap_meaningful(control, oracle):
         lines.append(f"the loop ({loop:.2f} cm) recovers {recovered:.0%} of the control -> oracle gap (goal >= "
                      f"{RECOVERY_GOAL:.0%}: {'met' if recovered >= RECOVERY_GOAL else 'NOT met'})"
                      + ("" if headroom <= HEADROOM_GOAL else

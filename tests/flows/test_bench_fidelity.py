@@ -291,6 +291,13 @@ def test_seed_figures_and_their_verdict_by_hand():
     lines = B.verdict_lines({"iterations": 2, "mcd_loop_iter2": 10.0, "mcd_control_iter2": 11.0,
                              "mcd_oracle_iter2": 8.0, **f})
     assert lines[-2] == line and lines[-1].startswith("paper's ablation ordering")
+    # without headroom, the share over a gap of at least MIN_GAP_CM is given with its gap; under it, not at all
+    wide = {**f, "mcd_control_seeds_mean": 10.97, "mcd_oracle_seeds_mean": 10.21, "headroom_seeds_mean": 0.931,
+            "loop_gap_recovered_seeds_mean": 0.7}
+    assert B.seed_line(wide).endswith("headroom of the means 0.931, share of the gap recovered 70% (of a gap of "
+                                      "0.76 cm)")
+    narrow = {**wide, "mcd_oracle_seeds_mean": 10.80, "headroom_seeds_mean": 0.985}
+    assert B.seed_line(narrow).endswith("headroom of the means 0.985")
     with pytest.raises(SystemExit):
         B.main(["--seeds", "1", "2"])   # seed 0 (the benchmark's own arms) must be among them
 
