@@ -254,6 +254,12 @@ def test_gap_recovered_and_ablation_ordering():
     assert B.ablation_ordering(5.0, None, 7.0).startswith("not measured")
 
 
+def test_the_demo_verdict_holds_the_benchmark_to_its_headroom_goal():
+    from flows.demo import BENCH_HEADROOM_GOAL
+
+    assert BENCH_HEADROOM_GOAL == B.HEADROOM_GOAL
+
+
 def test_a_missing_init_predictor_is_refused_before_anything_runs(prefect_harness, catalog, tmp_path):
     from flows.bootstrap import bootstrap
 
